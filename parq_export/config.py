@@ -1,0 +1,125 @@
+"""Hyperparameters of a PARQ model.
+
+The defaults are the authors' ScanNet release (``config/eval.yaml`` of ymingxie/PARQ, which
+overrides several values of their ``default.py``).  Every field here ends up in the model card
+(``model.json``) so that the numpy runtime needs nothing else to drive the exported graphs.
+
+Frames used below (see ``parq_runtime.geometry``):
+  * camera: OpenCV axes, x right, y down, z forward;
+  * local (snippet) frame: the gravity-aligned pseudo camera of the middle view, x left, y up,
+    z forward on the horizontal plane.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+# Class names of the authors' ScanNet (Scan2CAD) release, in label order; label 9 is no-object.
+SCANNET_CLASSES = ("chair", "table", "cabinet", "trash bin", "bookshelf", "display", "sofa",
+                   "bathtub", "other")
+
+# Mean full extents (x, y, z) in metres per class, from the authors' data/average_scan2cad.txt;
+# "other" and no-object use (1, 1, 1) as in their BoxProcessor.  Object y is up.
+SCANNET_MEAN_SIZES = (
+    (0.55067552, 0.84943989, 0.5786128),   # chair
+    (1.24506049, 0.66165523, 0.72455878),  # table
+    (0.95658434, 0.99974904, 0.56246602),  # cabinet
+    (0.36641966, 0.45580824, 0.27876528),  # trash bin
+    (1.05132399, 1.3471979, 0.33744382),   # bookshelf
+    (0.60740744, 0.4752175, 0.16435075),   # display
+    (1.68820774, 0.76637348, 0.89351734),  # sofa
+    (0.85305378, 0.43925023, 0.51612006),  # bathtub
+    (1.0, 1.0, 1.0),                       # other
+    (1.0, 1.0, 1.0),                       # no-object
+)
+
+RESNET_DEPTHS = (18, 34, 50, 101)
+
+
+@dataclass(frozen=True)
+class PARQConfig:
+    """Architecture and pre/post-processing constants of one PARQ model.
+
+    Scales are ``[xmin, xmax, ymin, ymax, zmin, zmax]`` in metres in the local frame.
+    ``image_size`` is ``(width, height)`` of the network input.
+    """
+
+    resnet_depth: int = 50
+    resnet_width: int = 64            # channels after the stem (torchvision: 64)
+    fpn_channels: int = 256           # per FPN level; four levels are concatenated
+    heads: int = 4
+    ffn_dim: int = 768
+    num_queries: int = 256
+    ray_samples: int = 64
+    ray_depth: tuple = (0.25, 5.25)   # metres along the optical axis, log-spaced
+    ray_scale: tuple = (-3.0, 3.0, -2.0, 0.5, 0.25, 5.25)
+    decoder_scale: tuple = (-3.0, 3.0, -2.0, 0.5, 0.25, 5.25)
+    classes: tuple = SCANNET_CLASSES
+    mean_sizes: tuple = SCANNET_MEAN_SIZES  # len(classes) + 1 rows, the last for no-object
+    image_size: tuple = (320, 240)
+    pixel_mean: tuple = (0.485, 0.456, 0.406)
+    pixel_std: tuple = (0.229, 0.224, 0.225)
+    iterations: int = 8               # recurrent iterations used in training
+    score_threshold: float = 0.8      # the authors' evaluation threshold
+    nms_iou: float = 0.1              # class-agnostic NMS on axis-aligned bounds
+    eval_region: tuple = (-1.5, 1.5, 0.0, 2.0)  # kept centers: local x in (a, b), z in (c, d)
+    extra: dict = field(default_factory=dict, compare=False)  # free-form provenance
+
+    feature_stride = 4  # FPN level P2; every level is resized to it
+
+    def __post_init__(self):
+        problems = []
+        if self.resnet_depth not in RESNET_DEPTHS:
+            problems.append(f"resnet_depth {self.resnet_depth} not in {RESNET_DEPTHS}")
+        if self.resnet_width < 8 or self.resnet_width % 8:
+            problems.append(f"resnet_width {self.resnet_width} must be a multiple of 8")
+        if self.feature_dim % self.heads:
+            problems.append(f"feature dim {self.feature_dim} not divisible by {self.heads} heads")
+        if len(self.mean_sizes) != len(self.classes) + 1:
+            problems.append(f"{len(self.mean_sizes)} mean sizes for {len(self.classes)} classes "
+                            "(need one more, for no-object)")
+        if len(self.ray_scale) != 6 or len(self.decoder_scale) != 6:
+            problems.append("ray_scale and decoder_scale need 6 values")
+        w, h = self.image_size
+        if w % 4 or h % 4 or w < 32 or h < 32:
+            # P2 (stride 4) must be exactly (w/4, h/4) for the camera scaling to hold.
+            problems.append(f"image_size {self.image_size}: width and height must be "
+                            "multiples of 4, at least 32")
+        if not 0 < self.ray_depth[0] < self.ray_depth[1]:
+            problems.append(f"ray_depth {self.ray_depth} must be 0 < near < far")
+        if problems:
+            raise ValueError("invalid PARQ config: " + "; ".join(problems))
+
+    @property
+    def feature_dim(self) -> int:
+        """Channels of the concatenated FPN levels = decoder width."""
+        return 4 * self.fpn_channels
+
+    @property
+    def feature_size(self) -> tuple:
+        """(width, height) of the feature map (stride 4)."""
+        return (self.image_size[0] // self.feature_stride,
+                self.image_size[1] // self.feature_stride)
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        return {k: (list(map(list, v)) if k == "mean_sizes" else list(v) if isinstance(v, tuple)
+                    else v) for k, v in d.items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PARQConfig":
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown config fields: {sorted(unknown)}")
+        kw = {}
+        for k, v in d.items():
+            if k == "mean_sizes":
+                v = tuple(tuple(float(x) for x in row) for row in v)
+            elif isinstance(v, list):
+                v = tuple(v)
+            kw[k] = v
+        return cls(**kw)
+
+    def replace(self, **kw) -> "PARQConfig":
+        return dataclasses.replace(self, **kw)

@@ -1,0 +1,196 @@
+"""One recurrent PARQ layer: query position encoding, a DETR decoder layer and the box heads.
+
+The same weights are applied at every iteration.  Shapes use B snippets, K queries, C channels,
+S = N * h * w memory tokens ordered (view, row, column), H heads of d = C / H channels.
+
+Two ways of computing the cross-attention are provided; both are exact:
+
+* ``reference``: ``nn.MultiheadAttention`` on the memory, projecting keys and values again at
+  every iteration, as the authors' code does;
+* ``operands``: attention on per-snippet operands from :meth:`PARQLayer.attention_operands`,
+  either the projected keys/values (the *cached* form: the projections run once per snippet)
+  or the raw memory with the key/value weights folded onto the query side (the *folded* form:
+  the memory is never projected).  In the folded form, for head h with W_k,h (d x C):
+  q_h . (W_k,h m + b_k,h) = (q_h W_k,h) . m + q_h . b_k,h, and the last term is constant over
+  the keys, so softmax removes it; and sum_j a_j (W_v,h m_j + b_v,h) = W_v,h (sum_j a_j m_j) +
+  b_v,h because the weights a_j sum to one.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .ray_encoding import denormalize_points, inverse_sigmoid, normalize_points
+
+
+def sine_encoding(points: torch.Tensor, dim_t: torch.Tensor) -> torch.Tensor:
+    """PETR sine encoding of normalised points (..., 3) -> (..., 3 * F), axes in order (y, x, z).
+
+    Each axis is scaled by 2 pi and divided by dim_t (F,); sin on even, cos on odd indices,
+    interleaved.
+    """
+    e = (points * (2 * math.pi))[..., None] / dim_t                    # (..., 3, F)
+    e = torch.stack([e[..., 0::2].sin(), e[..., 1::2].cos()], -1).flatten(-2)
+    return torch.cat([e[..., 1, :], e[..., 0, :], e[..., 2, :]], -1)
+
+
+def rotation_from_6d(a: torch.Tensor) -> torch.Tensor:
+    """6D rotation (Zhou et al.) (..., 6) -> (..., 3, 3) with columns (x, y, z).
+
+    x = normalise(a[0:3]); z = normalise(x cross a[3:6]); y = z cross x.
+    """
+    def normalise(v):
+        return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp(min=1e-8)
+
+    def cross(u, v):
+        return torch.stack([u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1],
+                            u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2],
+                            u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]], -1)
+
+    x = normalise(a[..., 0:3])
+    z = normalise(cross(x, a[..., 3:6]))
+    y = cross(z, x)
+    return torch.stack([x, y, z], -1)
+
+
+class MLPHead(nn.Module):
+    """3DETR GenericMLP as Conv1d(kernel 1) on (B, C, K) with the authors' module indices:
+    ``hidden`` x [conv without bias, GroupNorm(1, C), ReLU, Dropout(0)], then conv with bias.
+
+    GroupNorm(1, C) normalises over all C x K values of a snippet, so a query's output depends
+    on the other queries of the same snippet (as in the authors' model).
+    """
+
+    def __init__(self, dim: int, out: int, hidden: int):
+        super().__init__()
+        layers = []
+        for _ in range(hidden):
+            layers += [nn.Conv1d(dim, dim, 1, bias=False), nn.GroupNorm(1, dim), nn.ReLU(),
+                       nn.Dropout(0.0)]
+        layers.append(nn.Conv1d(dim, out, 1))
+        self.layers = nn.Sequential(*layers)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.layers(x)
+
+
+class DecoderLayer(nn.Module):
+    """DETR decoder layer, post-norm, with the parameter names of the authors' layer."""
+
+    def __init__(self, dim: int, heads: int, ffn_dim: int):
+        super().__init__()
+        self.heads = heads
+        self.self_attn = nn.MultiheadAttention(dim, heads, dropout=0.0)
+        self.multihead_attn = nn.MultiheadAttention(dim, heads, dropout=0.0)
+        self.linear1 = nn.Linear(dim, ffn_dim)
+        self.linear2 = nn.Linear(ffn_dim, dim)
+        self.norm1 = nn.LayerNorm(dim)
+        self.norm2 = nn.LayerNorm(dim)
+        self.norm3 = nn.LayerNorm(dim)
+
+    def self_attention(self, x: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
+        """(B, K, C) -> (B, K, C); q = k = x + pos, v = x."""
+        B, K, C = x.shape
+        H, d = self.heads, C // self.heads
+        W, b = self.self_attn.in_proj_weight, self.self_attn.in_proj_bias
+        qk = x + pos
+        q = F.linear(qk, W[:C], b[:C]).view(B, K, H, d).transpose(1, 2) * d ** -0.5
+        k = F.linear(qk, W[C:2 * C], b[C:2 * C]).view(B, K, H, d).transpose(1, 2)
+        v = F.linear(x, W[2 * C:], b[2 * C:]).view(B, K, H, d).transpose(1, 2)
+        ctx = torch.softmax(q @ k.transpose(-1, -2), -1) @ v
+        return self.self_attn.out_proj(ctx.transpose(1, 2).reshape(B, K, C))
+
+    def attention_operands(self, memory: torch.Tensor, cached: bool):
+        """Per-snippet operands of the cross-attention, memory (B, S, C) ->
+        keys (B, Hk, S, Dk), values (B, Hk, S, Dv), key_map (H, d, Dk), value_map (H, Dv, d),
+        value_bias (H, 1, d).  Cached: Hk = H, Dk = Dv = d, identity maps.  Folded: Hk = 1,
+        Dk = Dv = C, the memory itself with W_k,h and W_v,h^T as maps."""
+        C = memory.shape[-1]
+        H, d = self.heads, C // self.heads
+        W, b = self.multihead_attn.in_proj_weight, self.multihead_attn.in_proj_bias
+        if cached:
+            B, S, _ = memory.shape
+            keys = F.linear(memory, W[C:2 * C], b[C:2 * C]).view(B, S, H, d).transpose(1, 2)
+            values = F.linear(memory, W[2 * C:], b[2 * C:]).view(B, S, H, d).transpose(1, 2)
+            eye = torch.eye(d, dtype=memory.dtype, device=memory.device).expand(H, d, d)
+            return keys, values, eye, eye, memory.new_zeros(H, 1, d)
+        keys = memory[:, None]
+        return (keys, keys, W[C:2 * C].reshape(H, d, C),
+                W[2 * C:].reshape(H, d, C).transpose(1, 2), b[2 * C:].reshape(H, 1, d))
+
+    def cross_attention(self, x, keys, values, key_map, value_map, value_bias):
+        """x (B, K, C) attends to the operands of :meth:`attention_operands` -> (B, K, C)."""
+        B, K, C = x.shape
+        H, d = self.heads, C // self.heads
+        W, b = self.multihead_attn.in_proj_weight, self.multihead_attn.in_proj_bias
+        q = F.linear(x, W[:C], b[:C]).view(B, K, H, d).transpose(1, 2) * d ** -0.5
+        scores = (q @ key_map) @ keys.transpose(-1, -2)                 # (B, H, K, S)
+        ctx = (torch.softmax(scores, -1) @ values) @ value_map + value_bias
+        return self.multihead_attn.out_proj(ctx.transpose(1, 2).reshape(B, K, C))
+
+    def forward(self, x, pos, operands=None, memory=None):
+        """x, pos (B, K, C).  Give ``operands`` (fast form) or ``memory`` (B, S, C), in which
+        case nn.MultiheadAttention runs exactly as in the authors' code."""
+        if memory is None:
+            x = self.norm1(x + self.self_attention(x, pos))
+            x = self.norm2(x + self.cross_attention(x + pos, *operands))
+        else:
+            tgt, p, mem = x.transpose(0, 1), pos.transpose(0, 1), memory.transpose(0, 1)
+            q = tgt + p
+            tgt = self.norm1(tgt + self.self_attn(q, q, value=tgt)[0])
+            tgt = self.norm2(tgt + self.multihead_attn(tgt + p, mem, value=mem)[0])
+            x = tgt.transpose(0, 1)
+        return self.norm3(x + self.linear2(F.relu(self.linear1(x))))
+
+
+class PARQLayer(nn.Module):
+    """One PARQ iteration: query content (B, K, C) + reference points (B, K, 3), normalised to
+    [0, 1]^3 with the decoder scale -> box parameters in the local frame:
+
+    center (B, K, 3) metres, size (B, K, 3) metres (full extents), ortho6d (B, K, 6),
+    rotation (B, K, 3, 3) = R_local_object, logits (B, K, classes + 1; the last is no-object),
+    next_reference_points (B, K, 3) normalised.
+    """
+
+    def __init__(self, dim, heads, ffn_dim, num_classes, mean_sizes, decoder_scale,
+                 pos_features=128, temperature=10000.0):
+        super().__init__()
+        self.scale = tuple(float(s) for s in decoder_scale)
+        self.position_encoder = nn.Sequential(nn.Linear(3 * pos_features, dim), nn.ReLU(),
+                                              nn.Linear(dim, dim))
+        self.decoder = DecoderLayer(dim, heads, ffn_dim)
+        self.heads = nn.ModuleDict({
+            "sem_cls_head": MLPHead(dim, num_classes + 1, 0),
+            "center_head": MLPHead(dim, 3, 2),
+            "size_head": MLPHead(dim, 3, 0),
+            "rotation_head": MLPHead(dim, 6, 2),
+        })
+        i = torch.arange(pos_features, dtype=torch.float32)
+        self.register_buffer("dim_t", temperature ** (2 * (i // 2) / pos_features),
+                             persistent=False)
+        self.register_buffer("mean_sizes", torch.tensor(mean_sizes, dtype=torch.float32),
+                             persistent=False)
+
+    def attention_operands(self, memory: torch.Tensor, cached: bool):
+        return self.decoder.attention_operands(memory, cached)
+
+    def forward(self, query_content, reference_points, operands=None, memory=None) -> dict:
+        pos = self.position_encoder(sine_encoding(reference_points, self.dim_t))
+        tokens = self.decoder(query_content, pos, operands=operands, memory=memory)
+        return self.decode(tokens, reference_points)
+
+    def decode(self, tokens: torch.Tensor, reference_points: torch.Tensor) -> dict:
+        x = tokens.transpose(1, 2)                                      # (B, C, K)
+        logits = self.heads["sem_cls_head"](x).transpose(1, 2)
+        offset = self.heads["center_head"](x).transpose(1, 2)
+        center = denormalize_points(torch.sigmoid(offset + inverse_sigmoid(reference_points)),
+                                    self.scale)
+        label = torch.argmax(torch.softmax(logits, -1), -1)
+        size = torch.exp(self.heads["size_head"](x).transpose(1, 2)) * self.mean_sizes[label]
+        ortho6d = self.heads["rotation_head"](x).transpose(1, 2)
+        return {"center": center, "size": size, "ortho6d": ortho6d,
+                "rotation": rotation_from_6d(ortho6d), "logits": logits,
+                "next_reference_points": normalize_points(center, self.scale)}

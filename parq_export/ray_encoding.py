@@ -1,0 +1,70 @@
+"""Ray positional encoding (PETR-style, as the authors' ``AddRayPE``).
+
+For every feature pixel (u, v), u = 0..w-1, v = 0..h-1 (no half-pixel offset), the ray
+((u - cx) / fx, (v - cy) / fy, 1) of the feature-resolution camera is sampled at D depths
+d_i = exp(ln near + ln(far / near) * i / (D - 1)) along the optical axis.  The points are taken
+to the local (snippet) frame, each axis is mapped to [0, 1] with the ray scale, passed through
+``inverse_sigmoid`` and flattened as (x0, y0, z0, x1, ...) into a 3D-vector, which an MLP
+(Linear, ReLU, Linear) turns into a C-vector that is added to the image features.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+def inverse_sigmoid(x: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
+    """log(max(x, eps) / max(1 - x, eps)) after clamping x to [0, 1] (the authors' form)."""
+    x = x.clamp(0.0, 1.0)
+    return torch.log(x.clamp(min=eps) / (1.0 - x).clamp(min=eps))
+
+
+def normalize_points(points: torch.Tensor, scale) -> torch.Tensor:
+    """Metres in the local frame -> [0, 1] per axis; scale = [xmin, xmax, ymin, ymax, zmin, zmax]."""
+    lo = points.new_tensor(scale[0::2])
+    hi = points.new_tensor(scale[1::2])
+    return (points - lo) / (hi - lo)
+
+
+def denormalize_points(points: torch.Tensor, scale) -> torch.Tensor:
+    lo = points.new_tensor(scale[0::2])
+    hi = points.new_tensor(scale[1::2])
+    return points * (hi - lo) + lo
+
+
+class RayEncoder(nn.Module):
+    """camera (..., N, 4) = (fx, fy, cx, cy) at feature resolution, T_local_camera (..., N, 4, 4)
+    -> ray encoding (..., N, h, w, C)."""
+
+    def __init__(self, feature_size: tuple, dim: int, samples: int, depth: tuple, scale):
+        super().__init__()
+        self.width, self.height = feature_size
+        self.samples = samples
+        self.scale = tuple(float(s) for s in scale)
+        near, far = depth
+        ramp = torch.linspace(0.0, 1.0, samples)
+        depths = torch.exp(math.log(near) + math.log(far / near) * ramp)
+        self.register_buffer("depths", depths, persistent=False)
+        u = torch.arange(self.width, dtype=torch.float32)
+        v = torch.arange(self.height, dtype=torch.float32)
+        vv, uu = torch.meshgrid(v, u, indexing="ij")
+        self.register_buffer("pixels", torch.stack([uu, vv], -1), persistent=False)  # (h, w, 2)
+        self.mlp = nn.Sequential(nn.Linear(3 * samples, dim), nn.ReLU(), nn.Linear(dim, dim))
+
+    def ray_points(self, camera: torch.Tensor, T_local_camera: torch.Tensor) -> torch.Tensor:
+        """Sample points of every feature pixel's ray in the local frame: (..., N, h, w, D, 3)."""
+        f = camera[..., None, None, 0:2]
+        c = camera[..., None, None, 2:4]
+        xy = (self.pixels - c) / f                                    # (..., N, h, w, 2)
+        rays_camera = torch.cat([xy, torch.ones_like(xy[..., :1])], -1)
+        R = T_local_camera[..., None, None, :3, :3]
+        t = T_local_camera[..., None, None, None, :3, 3]
+        directions_local = (R @ rays_camera[..., None])[..., 0]      # (..., N, h, w, 3)
+        return directions_local[..., None, :] * self.depths[:, None] + t
+
+    def forward(self, camera: torch.Tensor, T_local_camera: torch.Tensor) -> torch.Tensor:
+        points = inverse_sigmoid(normalize_points(self.ray_points(camera, T_local_camera),
+                                                  self.scale))
+        return self.mlp(points.flatten(-2))
