@@ -122,13 +122,18 @@ class DecoderLayer(nn.Module):
                 W[2 * C:].reshape(H, d, C).transpose(1, 2), b[2 * C:].reshape(H, 1, d))
 
     def cross_attention(self, x, keys, values, key_map, value_map, value_bias):
-        """x (B, K, C) attends to the operands of :meth:`attention_operands` -> (B, K, C)."""
+        """x (B, K, C) attends to the operands of :meth:`attention_operands` -> (B, K, C).
+
+        The queries are grouped like the keys, (B, Hk, H / Hk * K, Dk), so one batched product
+        serves both forms without broadcasting over heads.
+        """
         B, K, C = x.shape
         H, d = self.heads, C // self.heads
         W, b = self.multihead_attn.in_proj_weight, self.multihead_attn.in_proj_bias
         q = F.linear(x, W[:C], b[:C]).view(B, K, H, d).transpose(1, 2) * d ** -0.5
-        scores = (q @ key_map) @ keys.transpose(-1, -2)                 # (B, H, K, S)
-        ctx = (torch.softmax(scores, -1) @ values) @ value_map + value_bias
+        q = (q @ key_map).reshape(B, keys.shape[1], -1, keys.shape[-1])
+        attn = torch.softmax(q @ keys.transpose(-1, -2), -1)           # (B, Hk, H/Hk*K, S)
+        ctx = (attn @ values).reshape(B, H, K, -1) @ value_map + value_bias
         return self.multihead_attn.out_proj(ctx.transpose(1, 2).reshape(B, K, C))
 
     def forward(self, x, pos, operands=None, memory=None):

@@ -159,3 +159,19 @@ def horizontal_basis(up) -> tuple:
     ref = np.array([1.0, 0, 0]) if abs(up[0]) < 0.9 else np.array([0, 1.0, 0])
     e1 = _unit(ref - (ref @ up) * up)
     return e1, np.cross(up, e1)
+
+
+def camera_pose(position, yaw: float, tilt: float = 0.0, roll: float = 0.0) -> np.ndarray:
+    """T_world_camera (4, 4) of an OpenCV camera in a z-up world at ``position``, heading ``yaw``
+    (radians, counter-clockwise from world x), pitched down by ``tilt`` and rolled clockwise (as
+    seen by the camera) by ``roll``."""
+    forward = np.array([np.cos(yaw) * np.cos(tilt), np.sin(yaw) * np.cos(tilt), -np.sin(tilt)])
+    right = np.array([np.sin(yaw), -np.cos(yaw), 0.0])
+    down = np.cross(forward, right)
+    c, s = np.cos(roll), np.sin(roll)
+    T = np.eye(4)
+    T[:3, 0] = c * right + s * down
+    T[:3, 1] = -s * right + c * down
+    T[:3, 2] = forward
+    T[:3, 3] = position
+    return T

@@ -1,0 +1,230 @@
+"""Export a PARQ checkpoint to a model folder: backbone.onnx, layer.onnx and model.json.
+
+The folder is written next to its destination under a temporary name, checked against the torch
+model, and only then renamed into place, so a failed export leaves nothing behind.
+"""
+from __future__ import annotations
+
+import contextlib
+import datetime
+import hashlib
+import io
+import json
+import logging
+import os
+import pathlib
+import shutil
+import tempfile
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import onnx
+import onnxscript.optimizer
+import torch
+
+from parq_runtime import __version__
+from parq_runtime.errors import ParqError
+from parq_runtime.model_card import CARD_FORMAT, CARD_VERSION, METADATA_KEY
+
+from . import checkpoint as ckpt
+from . import verify
+from .graphs import (BACKBONE_INPUTS, BACKBONE_OUTPUTS, LAYER_INPUTS, LAYER_OUTPUTS,
+                     OPERAND_NAMES, BackboneGraph, LayerGraph, add_operands_branch)
+from .model import PARQ
+
+DEFAULT_OPSET = 18
+MAX_VIEWS = 9
+MAX_QUERIES = 1024
+
+
+@dataclass
+class ExportResult:
+    out_dir: pathlib.Path
+    card: dict
+    report: dict  # verification: {name: (max abs diff, tolerance)}
+
+
+def _quiet_export(*args, **kwargs):
+    """torch.onnx.export without its progress chatter (errors still raise)."""
+    logging.getLogger("torch.onnx").setLevel(logging.ERROR)
+    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
+        warnings.simplefilter("ignore")
+        return torch.onnx.export(*args, **kwargs)
+
+
+def fold_weights(proto: onnx.ModelProto) -> onnx.ModelProto:
+    """Fold computations on weights into constants (the slices of the attention projections,
+    the per-channel scale of frozen batch norms ...), so none of them runs per call, and drop
+    the initializers left unused (the cross-attention key/value weights of the layer graph).
+    The size limits are raised above torch's defaults because the folded tensors are up to
+    C x C."""
+    return onnxscript.optimizer.optimize(proto, num_iterations=3,
+                                         input_size_limit=1 << 26, output_size_limit=1 << 26)
+
+
+def export_backbone(model: PARQ, path: pathlib.Path, opset: int) -> onnx.ModelProto:
+    c = model.config
+    w, h = c.image_size
+    fw, fh = c.feature_size
+    example = (torch.zeros(2, h, w, 3, dtype=torch.uint8),
+               torch.zeros(1, c.feature_dim, fh, fw),
+               torch.ones(3, 4), torch.eye(4).repeat(3, 1, 1))
+    new = torch.export.Dim("new_views", min=0, max=MAX_VIEWS)
+    old = torch.export.Dim("cached_views", min=0, max=MAX_VIEWS)
+    auto = torch.export.Dim.AUTO
+    program = _quiet_export(
+        BackboneGraph(model).eval(), example, dynamo=True, opset_version=opset,
+        input_names=list(BACKBONE_INPUTS), output_names=list(BACKBONE_OUTPUTS),
+        dynamic_shapes={"images": {0: new}, "cached_features": {0: old},
+                        "camera": {0: auto}, "T_local_camera": {0: auto}},
+        optimize=True, verify=False)
+    return add_operands_branch(fold_weights(program.model_proto), model)
+
+
+def export_layer(model: PARQ, path: pathlib.Path, opset: int) -> onnx.ModelProto:
+    c = model.config
+    C, H = c.feature_dim, c.heads
+    d = C // H
+    S = 3 * c.feature_size[0] * c.feature_size[1]
+    K = c.num_queries
+    example = (torch.zeros(K, C), torch.full((K, 3), 0.5), torch.zeros(H, S, d),
+               torch.zeros(H, S, d), torch.eye(d).repeat(H, 1, 1), torch.eye(d).repeat(H, 1, 1),
+               torch.zeros(H, 1, d))
+    queries = torch.export.Dim("queries", min=1, max=MAX_QUERIES)
+    heads = torch.export.Dim("operand_heads", min=1, max=H)
+    tokens = torch.export.Dim("tokens", min=1)
+    width = torch.export.Dim("operand_width", min=1)
+    program = _quiet_export(
+        LayerGraph(model).eval(), example, dynamo=True, opset_version=opset,
+        input_names=list(LAYER_INPUTS), output_names=list(LAYER_OUTPUTS),
+        dynamic_shapes={"query_content": {0: queries}, "reference_points": {0: queries},
+                        "attention_keys": {0: heads, 1: tokens, 2: width},
+                        "attention_values": {0: heads, 1: tokens, 2: width},
+                        "key_map": {2: width}, "value_map": {1: width}, "value_bias": None},
+        optimize=True, verify=False)
+    return fold_weights(program.model_proto)
+
+
+def build_card(model: PARQ, checkpoint: ckpt.Checkpoint, source: pathlib.Path,
+               opset: int) -> dict:
+    """Everything the runtime needs, and where the model came from."""
+    c = model.config
+    fw, fh = c.feature_size
+    return {
+        "format": CARD_FORMAT,
+        "format_version": CARD_VERSION,
+        "package_version": __version__,
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "opset": opset,
+        "checkpoint": {"file": source.name, "sha256": checkpoint.sha256,
+                       "layout": checkpoint.layout, "defaulted_fields": checkpoint.defaulted},
+        "config": c.to_dict(),
+        "classes": list(c.classes),
+        "no_object_label": len(c.classes),
+        "mean_sizes": [list(map(float, m)) for m in c.mean_sizes],
+        "image": {"width": c.image_size[0], "height": c.image_size[1], "channels": "RGB",
+                  "dtype": "uint8", "layout": "NHWC",
+                  "resize": "PIL.Image.resize BILINEAR (antialiased when shrinking); "
+                            "1296x968 frames padded 2 px top and bottom first",
+                  "normalisation": {"scale": 1 / 255, "mean": list(c.pixel_mean),
+                                    "std": list(c.pixel_std), "inside_graph": True}},
+        "feature": {"stride": c.feature_stride, "width": fw, "height": fh,
+                    "channels": c.feature_dim,
+                    "camera": "f * s, c' = (c + 0.5) * s - 0.5 with s = 1 / stride"},
+        "rays": {"samples": c.ray_samples, "depth": list(c.ray_depth),
+                 "scale": list(c.ray_scale)},
+        "decoder": {"scale": list(c.decoder_scale), "heads": c.heads,
+                    "head_dim": c.feature_dim // c.heads, "iterations": c.iterations,
+                    "sampling": "bilinear, align_corners=True, zero padding, summed over all "
+                                "views, divided by the number of views where the point is "
+                                "valid (z > 1e-3 and inside [0, w-1] x [0, h-1])"},
+        "reference_points": model.initial_reference_points().detach().double().tolist(),
+        "postprocess": {"score_threshold": c.score_threshold, "nms_iou": c.nms_iou,
+                        "eval_region": list(c.eval_region)},
+        "limits": {"max_views": MAX_VIEWS, "max_queries": MAX_QUERIES},
+        "graphs": {
+            "backbone": {"file": "backbone.onnx", "inputs": list(BACKBONE_INPUTS) + ["key_value"],
+                         "outputs": list(BACKBONE_OUTPUTS) + list(OPERAND_NAMES)},
+            "layer": {"file": "layer.onnx", "inputs": list(LAYER_INPUTS),
+                      "outputs": list(LAYER_OUTPUTS)},
+        },
+        "extra": dict(c.extra),
+    }
+
+
+def _finish_graph(proto: onnx.ModelProto, card: dict, role: str, doc: str) -> onnx.ModelProto:
+    del proto.metadata_props[:]
+    entries = {METADATA_KEY: json.dumps(card, sort_keys=True), "parq.graph": role,
+               "parq.package_version": __version__,
+               "parq.checkpoint_sha256": card["checkpoint"]["sha256"]}
+    for k, v in entries.items():
+        proto.metadata_props.add(key=k, value=v)
+    proto.producer_name = "parq-onnx"
+    proto.producer_version = __version__
+    proto.doc_string = doc
+    proto.graph.name = f"parq_{role}"
+    onnx.checker.check_model(proto, full_check=False)
+    return proto
+
+
+def _file_sha256(path) -> str:
+    return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
+
+
+def export(checkpoint_path, out_dir, opset: int = DEFAULT_OPSET, check: bool = True,
+           overwrite: bool = False, log=print) -> ExportResult:
+    """Export ``checkpoint_path`` to ``out_dir``; raises ParqError on bad input or a failed
+    check (then nothing is written)."""
+    source = pathlib.Path(checkpoint_path)
+    out_dir = pathlib.Path(out_dir)
+    if opset not in (17, 18):
+        raise ParqError(f"--opset {opset}: use 17 or 18 (onnxruntime's CUDA provider has no "
+                        "GridSample-20, and the graphs need LayerNormalization-17)")
+    if out_dir.exists() and not overwrite:
+        raise ParqError(f"{out_dir}: already exists (use --force to replace it)")
+    parent = out_dir.absolute().parent
+    if not parent.is_dir():
+        raise ParqError(f"{parent}: output folder's parent does not exist")
+    if not os.access(parent, os.W_OK):
+        raise ParqError(f"{parent}: not writable")
+    checkpoint = ckpt.load(source)
+    log(f"loaded {source} ({checkpoint.layout} layout, ResNet{checkpoint.config.resnet_depth}, "
+        f"{checkpoint.config.num_queries} queries)")
+    if checkpoint.defaulted:
+        log("not recorded in the checkpoint, taken from the authors' eval.yaml: "
+            + ", ".join(checkpoint.defaulted))
+    model = checkpoint.model()
+    card = build_card(model, checkpoint, source, opset)
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=parent))
+    try:
+        with torch.no_grad():
+            backbone = export_backbone(model, tmp, opset)
+            layer = export_layer(model, tmp, opset)
+        onnx.save(_finish_graph(backbone, card, "backbone",
+                                "PARQ backbone: images + cameras of one snippet -> memory and "
+                                "attention operands"), tmp / "backbone.onnx")
+        onnx.save(_finish_graph(layer, card, "layer",
+                                "One recurrent PARQ layer: query content + reference points + "
+                                "attention operands -> box parameters"), tmp / "layer.onnx")
+        report = {}
+        if check:
+            report = verify.check(model, tmp / "backbone.onnx", tmp / "layer.onnx")
+            for name, (diff, tol) in sorted(report.items()):
+                log(f"  check {name:42s} max abs diff {diff:.2e} (tolerance {tol:.1e})")
+            bad = verify.failed(report)
+            if bad:
+                raise ParqError(f"export check failed for {', '.join(bad)}: the graphs do not "
+                                "reproduce the torch model (nothing was written)")
+        card["verification"] = {k: {"max_abs_diff": d, "tolerance": t}
+                                for k, (d, t) in sorted(report.items())}
+        for role in ("backbone", "layer"):
+            card["graphs"][role]["sha256"] = _file_sha256(tmp / card["graphs"][role]["file"])
+        (tmp / "model.json").write_text(json.dumps(card, indent=1) + "\n")
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        os.replace(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return ExportResult(out_dir, card, report)

@@ -1,0 +1,167 @@
+"""Detector: one snippet of posed RGB frames in, 3D boxes out.
+
+    from parq_runtime import Detector
+    det = Detector("models/parq-demo")
+    result = det.detect(images, intrinsics, cam_to_world, iters=2, queries=32)
+    for box in result.boxes:
+        print(box.class_name, box.score, box.center)
+"""
+from __future__ import annotations
+
+import numbers
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import boxes as box_decoding
+from . import geometry, loop, model_card, preprocess, queries as query_points, sessions
+from .errors import ParqError
+
+MAX_ITERATIONS = 1000
+FORMS = ("auto", "cached", "folded")
+
+
+@dataclass
+class DetectionResult:
+    """boxes: detections in the world frame, best first; iterations: one
+    :class:`~parq_runtime.loop.Iteration` per iteration (local frame, every query, unfiltered);
+    T_world_local (4, 4): the snippet frame; form: the attention form the loop used;
+    timings: seconds per stage (``iterations`` is a list, one per iteration)."""
+
+    boxes: list
+    iterations: list
+    T_world_local: np.ndarray
+    form: str
+    timings: dict = field(default_factory=dict)
+
+
+def attention_cost(form: str, views: int, tokens_per_view: int, channels: int, heads: int,
+                   queries: int, iterations: int) -> float:
+    """Multiply-adds of the cross-attention over a snippet, in either exact form.
+
+    cached: keys and values projected once (2 S C^2), then per iteration scores and weighted
+    sum over heads of width d (2 K S C).  folded: per iteration, every head works at full
+    width C (2 H K S C) and nothing is projected."""
+    S = views * tokens_per_view
+    if form == "cached":
+        return 2 * S * channels ** 2 + iterations * 2 * queries * S * channels
+    return iterations * 2 * heads * queries * S * channels
+
+
+def choose_form(views, tokens_per_view, channels, heads, queries, iterations) -> str:
+    """The cheaper exact form: cached iff iterations * queries * (heads - 1) > channels."""
+    args = (views, tokens_per_view, channels, heads, queries, iterations)
+    return "cached" if attention_cost("cached", *args) < attention_cost("folded", *args) \
+        else "folded"
+
+
+def _check_count(value, name, low, high):
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ParqError(f"{name} must be an integer, got {value!r}")
+    if not low <= value <= high:
+        raise ParqError(f"{name} = {value}: must be between {low} and {high}")
+    return int(value)
+
+
+class Detector:
+    """Loads a model folder written by ``parq-export`` and runs it on snippets.
+
+    providers: onnxruntime execution providers (None: CPU); threads: intra-op threads (None:
+    onnxruntime's default, one per physical core)."""
+
+    def __init__(self, model_dir, providers=None, threads=None):
+        self.card = model_card.load(model_dir)
+        self.backbone = sessions.create(self.card.graph_path("backbone"), threads, providers)
+        self.layer = sessions.create(self.card.graph_path("layer"), threads, providers)
+        self.classes = self.card.classes
+
+    def reference_points(self, queries: int) -> np.ndarray:
+        queries = _check_count(queries, "queries", 1, self.card.max_queries)
+        return query_points.reference_points(self.card.reference_points, queries)
+
+    def prepare(self, images, intrinsics, cam_to_world, up=geometry.UP_Z):
+        """Resize frames and compute the snippet geometry: returns (images (N, h, w, 3) uint8,
+        camera (N, 4) at feature resolution, T_world_local, T_local_camera (N, 4, 4))."""
+        images = list(images)
+        N = len(images)
+        if not 1 <= N <= self.card.max_views:
+            raise ParqError(f"a snippet needs 1 to {self.card.max_views} views, got {N}")
+        T_world_camera = np.asarray(cam_to_world, dtype=np.float64)
+        if T_world_camera.shape != (N, 4, 4):
+            raise ParqError(f"cam_to_world must be ({N}, 4, 4) for {N} images, got "
+                            f"{T_world_camera.shape}")
+        geometry.check_rigid(T_world_camera, "cam_to_world")
+        K = np.asarray(intrinsics, dtype=np.float64)
+        if K.shape == (3, 3):
+            K = np.repeat(K[None], N, 0)
+        if K.shape != (N, 3, 3):
+            raise ParqError(f"intrinsics must be 3x3 or ({N}, 3, 3), got {K.shape}")
+        resized, K_net = [], []
+        for i, (image, K_i) in enumerate(zip(images, K)):
+            try:
+                img, K_i = preprocess.prepare(image, K_i, self.card.image_size)
+            except ParqError as e:
+                raise ParqError(f"view {i}: {e}") from None
+            resized.append(img)
+            K_net.append(K_i)
+        camera = geometry.scale_camera(geometry.pinhole(np.stack(K_net)),
+                                       1.0 / self.card.feature_stride)
+        T_world_local = geometry.snippet_frame(T_world_camera, up)
+        T_local_camera = geometry.invert(T_world_local) @ T_world_camera
+        return np.stack(resized), camera, T_world_local, T_local_camera
+
+    def encode(self, images, camera, T_local_camera, cached: bool):
+        """Run backbone.onnx; returns (memory (N, h, w, C), attention operands dict)."""
+        C = self.card.feature_dim
+        fw, fh = self.card.feature_size
+        outputs = [o.name for o in self.backbone.get_outputs()]
+        result = dict(zip(outputs, self.backbone.run(None, {
+            "images": images,
+            "cached_features": np.zeros((0, C, fh, fw), np.float32),
+            "camera": camera.astype(np.float32),
+            "T_local_camera": T_local_camera.astype(np.float32),
+            "key_value": np.array(cached)})))
+        operands = {k: result[k] for k in loop.OPERAND_NAMES}
+        return result["memory"], operands
+
+    def detect(self, images, intrinsics, cam_to_world, iters: int = 2, queries: int = 32,
+               score_threshold: float | None = None, region: bool = True,
+               form: str = "auto", up=geometry.UP_Z) -> DetectionResult:
+        """Detect objects in one snippet.
+
+        images: N RGB uint8 arrays (H, W, 3), any size; intrinsics: 3x3 for all views or
+        (N, 3, 3); cam_to_world: (N, 4, 4) OpenCV camera axes in a world whose up axis is
+        ``up`` (z by default).  iters: recurrent iterations >= 1; queries: reference points
+        (see parq_runtime.queries).  score_threshold: default from the model card; region:
+        keep only centers inside the authors' evaluation region; form: attention form
+        (``auto`` picks the cheaper of ``cached`` and ``folded``; both are exact)."""
+        iters = _check_count(iters, "iters", 1, MAX_ITERATIONS)
+        reference = self.reference_points(queries)
+        if form not in FORMS:
+            raise ParqError(f"form must be one of {', '.join(FORMS)}, got {form!r}")
+        threshold = self.card.score_threshold if score_threshold is None else score_threshold
+        if not 0.0 <= float(threshold) < 1.0:
+            raise ParqError(f"score threshold {threshold}: must be in [0, 1)")
+        timings = {}
+        start = time.perf_counter()
+        images, camera, T_world_local, T_local_camera = self.prepare(images, intrinsics,
+                                                                     cam_to_world, up)
+        T_camera_local = geometry.invert(T_local_camera)
+        timings["preprocess"] = time.perf_counter() - start
+        fw, fh = self.card.feature_size
+        if form == "auto":
+            form = choose_form(len(images), fw * fh, self.card.feature_dim, self.card.heads,
+                               len(reference), iters)
+        start = time.perf_counter()
+        memory, operands = self.encode(images, camera, T_local_camera, form == "cached")
+        timings["backbone"] = time.perf_counter() - start
+        timings["iterations"] = []
+        iterations = loop.run(self.layer, memory, operands, camera, T_camera_local, reference,
+                              iters, self.card.decoder_scale, timings["iterations"])
+        start = time.perf_counter()
+        found = box_decoding.detections(
+            iterations[-1], T_world_local, self.classes, float(threshold), self.card.nms_iou,
+            self.card.eval_region if region else None, up)
+        timings["postprocess"] = time.perf_counter() - start
+        return DetectionResult(found, iterations, T_world_local, form, timings)

@@ -1,0 +1,140 @@
+"""The model card (``model.json``): everything the runtime needs to drive the exported graphs.
+
+``parq-export`` writes it beside ``backbone.onnx`` and ``layer.onnx`` and mirrors it in both
+graphs' ``metadata_props`` under ``parq.model_card``.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import pathlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import ParqError
+
+CARD_FORMAT = "parq-onnx-model"
+CARD_VERSION = 1
+METADATA_KEY = "parq.model_card"
+REQUIRED = ("classes", "mean_sizes", "image", "feature", "decoder", "reference_points",
+            "postprocess", "graphs", "limits", "config")
+
+
+@dataclass(frozen=True)
+class ModelCard:
+    """A validated model card; ``raw`` holds the whole JSON."""
+
+    folder: pathlib.Path
+    raw: dict
+
+    @property
+    def classes(self) -> list:
+        return list(self.raw["classes"])
+
+    @property
+    def mean_sizes(self) -> np.ndarray:
+        return np.asarray(self.raw["mean_sizes"], dtype=np.float64)
+
+    @property
+    def image_size(self) -> tuple:
+        return (int(self.raw["image"]["width"]), int(self.raw["image"]["height"]))
+
+    @property
+    def feature_size(self) -> tuple:
+        return (int(self.raw["feature"]["width"]), int(self.raw["feature"]["height"]))
+
+    @property
+    def feature_stride(self) -> int:
+        return int(self.raw["feature"]["stride"])
+
+    @property
+    def feature_dim(self) -> int:
+        return int(self.raw["feature"]["channels"])
+
+    @property
+    def heads(self) -> int:
+        return int(self.raw["decoder"]["heads"])
+
+    @property
+    def decoder_scale(self) -> np.ndarray:
+        return np.asarray(self.raw["decoder"]["scale"], dtype=np.float64)
+
+    @property
+    def training_iterations(self) -> int:
+        return int(self.raw["decoder"]["iterations"])
+
+    @property
+    def reference_points(self) -> np.ndarray:
+        """Learned reference points (K, 3), normalised to [0, 1]^3, in the stored order."""
+        return np.asarray(self.raw["reference_points"], dtype=np.float64)
+
+    @property
+    def score_threshold(self) -> float:
+        return float(self.raw["postprocess"]["score_threshold"])
+
+    @property
+    def nms_iou(self) -> float:
+        return float(self.raw["postprocess"]["nms_iou"])
+
+    @property
+    def eval_region(self) -> tuple:
+        return tuple(float(v) for v in self.raw["postprocess"]["eval_region"])
+
+    @property
+    def max_views(self) -> int:
+        return int(self.raw["limits"]["max_views"])
+
+    @property
+    def max_queries(self) -> int:
+        return int(self.raw["limits"]["max_queries"])
+
+    def graph_path(self, role: str) -> pathlib.Path:
+        return self.folder / self.raw["graphs"][role]["file"]
+
+
+def _sha256(path: pathlib.Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def load(folder, check_hashes: bool = True) -> ModelCard:
+    """Read and validate ``folder/model.json``; raises ParqError saying what is wrong."""
+    folder = pathlib.Path(folder)
+    if not folder.is_dir():
+        raise ParqError(f"{folder}: model folder not found")
+    path = folder / "model.json"
+    if not path.is_file():
+        raise ParqError(f"{folder}: not a parq-onnx model folder (no model.json; "
+                        "create one with parq-export)")
+    try:
+        raw = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ParqError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(raw, dict) or raw.get("format") != CARD_FORMAT:
+        raise ParqError(f"{path}: not a parq-onnx model card")
+    if raw.get("format_version") != CARD_VERSION:
+        raise ParqError(f"{path}: written by parq-onnx {raw.get('package_version', '?')} in "
+                        f"model format {raw.get('format_version')}; this version reads format "
+                        f"{CARD_VERSION}: export the checkpoint again")
+    missing = [k for k in REQUIRED if k not in raw]
+    if missing:
+        raise ParqError(f"{path}: model card lacks {', '.join(missing)}")
+    card = ModelCard(folder, raw)
+    for role in ("backbone", "layer"):
+        entry = raw["graphs"].get(role)
+        if not isinstance(entry, dict) or "file" not in entry:
+            raise ParqError(f"{path}: model card names no {role} graph")
+        graph = card.graph_path(role)
+        if not graph.is_file():
+            raise ParqError(f"{graph}: missing from the model folder")
+        if check_hashes and entry.get("sha256") and _sha256(graph) != entry["sha256"]:
+            raise ParqError(f"{graph}: does not match the model card (sha256 differs; the file "
+                            "was changed or comes from another export)")
+    if len(card.mean_sizes) != len(card.classes) + 1:
+        raise ParqError(f"{path}: {len(card.mean_sizes)} mean sizes for {len(card.classes)} "
+                        "classes")
+    return card
