@@ -25,6 +25,7 @@ import torch
 
 from parq_runtime import __version__
 from parq_runtime.errors import ParqError
+from parq_runtime.files import umask
 from parq_runtime.model_card import CARD_FORMAT, CARD_VERSION, METADATA_KEY
 
 from . import checkpoint as ckpt
@@ -221,6 +222,7 @@ def export(checkpoint_path, out_dir, opset: int = DEFAULT_OPSET, check: bool = T
         for role in ("backbone", "layer"):
             card["graphs"][role]["sha256"] = _file_sha256(tmp / card["graphs"][role]["file"])
         (tmp / "model.json").write_text(json.dumps(card, indent=1) + "\n")
+        os.chmod(tmp, 0o777 & ~umask())
         if out_dir.exists():
             shutil.rmtree(out_dir)
         os.replace(tmp, out_dir)

@@ -66,13 +66,13 @@ def check_rigid(T: np.ndarray, what: str = "pose", tol: float = 1e-3) -> None:
                             f"(|R^T R - I| = {err:.2g}, det = {np.linalg.det(R):.3g})")
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
+def unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
 def pseudo_cameras(T_world_camera: np.ndarray, up=UP_Z) -> np.ndarray:
     """Gravity-aligned pseudo camera of each view: (N, 4, 4) T_world_camera -> T_world_pseudo."""
-    up = _unit(np.asarray(up, dtype=np.float64))
+    up = unit(np.asarray(up, dtype=np.float64))
     forward = T_world_camera[:, :3, 2]
     horizontal = forward - (forward @ up)[:, None] * up
     norm = np.linalg.norm(horizontal, axis=-1)
@@ -82,7 +82,7 @@ def pseudo_cameras(T_world_camera: np.ndarray, up=UP_Z) -> np.ndarray:
                         "is undefined (check the poses or --up)")
     z = horizontal / norm[:, None]
     y = np.broadcast_to(up, z.shape)
-    x = _unit(np.cross(y, z))
+    x = unit(np.cross(y, z))
     T_world_pseudo = np.array(T_world_camera, dtype=np.float64, copy=True)
     T_world_pseudo[:, :3, :3] = np.stack([x, y, z], -1)
     return T_world_pseudo
@@ -146,7 +146,7 @@ def yaw(R_world_object: np.ndarray, up=UP_Z) -> np.ndarray:
     """Heading of boxes (..., 3, 3) about the up axis, radians in (-pi, pi]: the angle of the
     object's x axis projected on the horizontal plane, counter-clockwise seen from above, from
     the world x axis (for up = +z) or from the first horizontal axis of the world's basis."""
-    up = _unit(np.asarray(up, dtype=np.float64))
+    up = unit(np.asarray(up, dtype=np.float64))
     e1, e2 = horizontal_basis(up)
     x_axis = np.asarray(R_world_object)[..., :, 0]
     return np.arctan2(x_axis @ e2, x_axis @ e1)
@@ -155,9 +155,9 @@ def yaw(R_world_object: np.ndarray, up=UP_Z) -> np.ndarray:
 def horizontal_basis(up) -> tuple:
     """Two unit vectors (e1, e2) spanning the plane normal to ``up`` with e1 x e2 = up; for up
     = +z they are the world x and y axes."""
-    up = _unit(np.asarray(up, dtype=np.float64))
+    up = unit(np.asarray(up, dtype=np.float64))
     ref = np.array([1.0, 0, 0]) if abs(up[0]) < 0.9 else np.array([0, 1.0, 0])
-    e1 = _unit(ref - (ref @ up) * up)
+    e1 = unit(ref - (ref @ up) * up)
     return e1, np.cross(up, e1)
 
 

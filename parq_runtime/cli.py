@@ -1,0 +1,152 @@
+"""parq-run: detect 3D boxes in a folder of posed frames."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import sys
+
+from .errors import ParqError
+
+DEFAULT_MODEL = pathlib.Path(__file__).resolve().parents[1] / "models" / "parq-demo"
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} must be at least 1")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"{value} must not be negative")
+    return value
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="parq-run",
+        description="Detect 3D boxes in a folder of posed RGB frames with an exported PARQ "
+                    "model: keyframes -> snippets -> detections -> scene fusion, as JSON.")
+    p.add_argument("frames", type=pathlib.Path,
+                   help="capture folder (ScanNet layout: color/, pose/, intrinsic/)")
+    p.add_argument("--model", type=pathlib.Path,
+                   default=pathlib.Path(os.environ.get("PARQ_MODEL", DEFAULT_MODEL)),
+                   help="model folder written by parq-export (default: $PARQ_MODEL or "
+                        "the shipped demo model, models/parq-demo)")
+    p.add_argument("--iters", type=positive_int, default=2,
+                   help="recurrent iterations per snippet (default 2; more is slower and "
+                        "usually more accurate)")
+    p.add_argument("--queries", type=positive_int, default=32,
+                   help="number of queries (reference points) per snippet (default 32)")
+    p.add_argument("--views", type=positive_int, default=3,
+                   help="keyframes per snippet (default 3, as the authors train)")
+    p.add_argument("--stride", type=positive_int, default=None,
+                   help="keyframes between snippet starts (default: --views, no overlap)")
+    p.add_argument("--score-threshold", type=non_negative_float, default=None,
+                   help="keep boxes scoring above this (default: the model card's, 0.8 for "
+                        "the authors' checkpoints)")
+    p.add_argument("--all-regions", action="store_true",
+                   help="keep boxes anywhere; by default only centers inside the authors' "
+                        "evaluation region of each snippet are kept")
+    p.add_argument("--form", choices=("auto", "cached", "folded"), default="auto",
+                   help="cross-attention form: auto picks the cheaper exact one (default)")
+    p.add_argument("--keyframe-angle", type=non_negative_float, default=15.0,
+                   help="degrees of turn that make a new keyframe (default 15)")
+    p.add_argument("--keyframe-distance", type=non_negative_float, default=0.1,
+                   help="metres of motion that make a new keyframe (default 0.1)")
+    p.add_argument("--max-snippets", type=positive_int, default=None,
+                   help="stop after this many snippets (a quick look)")
+    p.add_argument("--threads", type=positive_int, default=None,
+                   help="onnxruntime intra-op threads (default: one per core)")
+    p.add_argument("--providers", default=None,
+                   help="comma-separated onnxruntime execution providers, e.g. "
+                        "CUDAExecutionProvider (default: CPU)")
+    p.add_argument("-o", "--output", type=pathlib.Path, default=None,
+                   help="write the JSON here (written whole or not at all) instead of stdout")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress or summary on "
+                   "stderr")
+    return p
+
+
+class Progress:
+    """A progress line on stderr: redrawn in place on a terminal, every 10% otherwise."""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+        self.tty = sys.stderr.isatty()
+        self.last = -1
+
+    def __call__(self, done: int, total: int):
+        if not self.enabled or total == 0:
+            return
+        tenth = 10 * done // total
+        if self.tty:
+            bar = "#" * (30 * done // total)
+            print(f"\r[{bar:30s}] {done}/{total} snippets", end="", file=sys.stderr,
+                  flush=True)
+            if done == total:
+                print(file=sys.stderr)
+        elif tenth != self.last:
+            print(f"{done}/{total} snippets", file=sys.stderr, flush=True)
+        self.last = tenth
+
+
+def run(args) -> int:
+    from . import files, readers, results, scene
+    from .detector import Detector
+
+    if args.output is not None:
+        files.check_writable(args.output)
+    capture = readers.open_capture(args.frames)
+    detector = Detector(args.model, providers=args.providers, threads=args.threads)
+    settings = scene.RunSettings(
+        iters=args.iters, queries=args.queries, views=args.views, stride=args.stride,
+        score_threshold=args.score_threshold, region=not args.all_regions, form=args.form,
+        keyframe_angle=args.keyframe_angle, keyframe_distance=args.keyframe_distance,
+        max_snippets=args.max_snippets)
+    detector.reference_points(args.queries)  # argument check before the long part
+    keys, snippets = scene.plan(capture, settings)
+    if not snippets:
+        raise ParqError(f"{args.frames}: {len(capture.frames)} frames give {len(keys)} "
+                        f"keyframes, fewer than one snippet of {args.views} views")
+    for note in capture.notes:
+        if not args.quiet:
+            print(f"parq-run: note: {note}", file=sys.stderr)
+    result = scene.run(detector, capture, settings, Progress(not args.quiet))
+    threshold = detector.card.score_threshold if args.score_threshold is None \
+        else args.score_threshold
+    text = json.dumps(results.to_json(result, settings, detector.card, threshold), indent=1)
+    if args.output is None:
+        sys.stdout.write(text + "\n")
+    else:
+        files.atomic_write(args.output, text + "\n")
+    if not args.quiet:
+        print(f"parq-run: {len(result.snippets)} snippets, {len(result.fusion.boxes)} scene "
+              f"boxes, {result.seconds:.1f} s", file=sys.stderr)
+    return 0
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        return run(args)
+    except ParqError as e:
+        print(f"parq-run: error: {e}", file=sys.stderr)
+        return e.exit_code
+    except KeyboardInterrupt:
+        print("parq-run: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,78 @@
+"""The JSON that ``parq-run`` writes (schema ``parq-onnx/detections``, version 1).
+
+    {
+      "schema": "parq-onnx/detections", "version": 1,
+      "model":    {"folder", "checkpoint_sha256", "package_version"},
+      "settings": {"iters", "queries", "views", "stride", "score_threshold", "region",
+                   "form", "keyframe_angle_deg", "keyframe_distance_m"},
+      "capture":  {"path", "format", "up", "frames", "keyframes", "notes"},
+      "snippets": [{"index", "frames": [names], "T_world_local": 4x4, "form", "seconds",
+                    "boxes": [box, ...]}],
+      "scene":    {"boxes": [box + "snippet": index of the snippet it came from]},
+      "seconds":  total
+    }
+
+A box: {"class", "label", "score", "center" [3] m, "size" [3] m (full extents along the object's
+x, y = up, z), "rotation" 3x3 = R_world_object (columns = object axes), "yaw" rad,
+"corners" 8x3 m}; every coordinate is in the capture's world frame.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from . import __version__
+from .boxes import Box
+from .errors import ParqError
+
+SCHEMA = "parq-onnx/detections"
+VERSION = 1
+
+
+def to_json(scene, settings, card, score_threshold: float) -> dict:
+    snippets = []
+    for s in scene.snippets:
+        snippets.append({"index": s.index, "frames": s.frames,
+                         "T_world_local": np.round(s.T_world_local, 8).tolist(),
+                         "form": s.form, "seconds": round(s.seconds, 4),
+                         "boxes": [b.to_json() for b in s.boxes]})
+    fused = [dict(b.to_json(), snippet=int(src))
+             for b, src in zip(scene.fusion.boxes, scene.fusion.sources)]
+    return {
+        "schema": SCHEMA, "version": VERSION,
+        "model": {"folder": str(card.folder),
+                  "checkpoint_sha256": card.raw["checkpoint"]["sha256"],
+                  "package_version": __version__},
+        "settings": {"iters": settings.iters, "queries": settings.queries,
+                     "views": settings.views, "stride": settings.stride or settings.views,
+                     "score_threshold": score_threshold, "region": settings.region,
+                     "form": settings.form, "keyframe_angle_deg": settings.keyframe_angle,
+                     "keyframe_distance_m": settings.keyframe_distance},
+        "capture": {"path": str(scene.capture.path), "format": scene.capture.format,
+                    "up": list(map(float, scene.capture.up)),
+                    "frames": len(scene.capture.frames), "keyframes": len(scene.keyframes),
+                    "notes": scene.capture.notes},
+        "snippets": snippets,
+        "scene": {"boxes": fused},
+        "seconds": round(scene.seconds, 4),
+    }
+
+
+def load_scene_boxes(path, classes=None) -> list:
+    """Scene boxes of a parq-run JSON file, as :class:`Box` objects."""
+    try:
+        data = json.loads(open(path).read())
+    except FileNotFoundError:
+        raise ParqError(f"{path}: not found") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ParqError(f"{path}: not readable JSON ({e})") from None
+    if not isinstance(data, dict) or data.get("schema") != SCHEMA:
+        raise ParqError(f"{path}: not a parq-run output (schema {SCHEMA!r} expected)")
+    if data.get("version") != VERSION:
+        raise ParqError(f"{path}: parq-run output version {data.get('version')}, expected "
+                        f"{VERSION}")
+    try:
+        return [Box.from_json(b, classes) for b in data["scene"]["boxes"]]
+    except (KeyError, TypeError, ValueError) as e:
+        raise ParqError(f"{path}: malformed box ({e})") from None

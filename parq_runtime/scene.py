@@ -1,0 +1,81 @@
+"""A whole capture: keyframes -> snippets -> detections -> scene fusion.
+
+Images are read from disk one snippet at a time, so memory stays flat however long the video.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import keyframes
+from .fusion import SceneFusion
+from .readers import Capture
+
+
+@dataclass
+class RunSettings:
+    iters: int = 2
+    queries: int = 32
+    views: int = 3
+    stride: int | None = None
+    score_threshold: float | None = None
+    region: bool = True
+    form: str = "auto"
+    keyframe_angle: float = 15.0
+    keyframe_distance: float = 0.1
+    max_snippets: int | None = None
+
+
+@dataclass
+class SnippetResult:
+    index: int
+    frames: list          # frame names
+    T_world_local: np.ndarray
+    boxes: list
+    form: str
+    seconds: float
+
+
+@dataclass
+class SceneResult:
+    capture: Capture
+    keyframes: list       # frame names
+    snippets: list = field(default_factory=list)
+    fusion: SceneFusion | None = None
+    seconds: float = 0.0
+
+
+def plan(capture: Capture, settings: RunSettings) -> tuple:
+    """(keyframe indices, snippets as lists of frame indices)."""
+    keys = keyframes.select([f.cam_to_world for f in capture.frames], settings.keyframe_angle,
+                            settings.keyframe_distance)
+    snippets = keyframes.windows(keys, settings.views, settings.stride)
+    if settings.max_snippets is not None:
+        snippets = snippets[:settings.max_snippets]
+    return keys, snippets
+
+
+def run(detector, capture: Capture, settings: RunSettings, progress=None) -> SceneResult:
+    """Detect in every snippet and fuse; ``progress(done, total)`` is called per snippet."""
+    start = time.perf_counter()
+    keys, snippets = plan(capture, settings)
+    result = SceneResult(capture, [capture.frames[i].name for i in keys],
+                         fusion=SceneFusion(up=capture.up))
+    for n, indices in enumerate(snippets):
+        t = time.perf_counter()
+        frames = [capture.frames[i] for i in indices]
+        found = detector.detect([f.load_image() for f in frames],
+                                np.stack([f.intrinsics for f in frames]),
+                                np.stack([f.cam_to_world for f in frames]),
+                                iters=settings.iters, queries=settings.queries,
+                                score_threshold=settings.score_threshold,
+                                region=settings.region, form=settings.form, up=capture.up)
+        result.fusion.add(found.boxes, n)
+        result.snippets.append(SnippetResult(n, [f.name for f in frames], found.T_world_local,
+                                             found.boxes, found.form, time.perf_counter() - t))
+        if progress is not None:
+            progress(n + 1, len(snippets))
+    result.seconds = time.perf_counter() - start
+    return result
