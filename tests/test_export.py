@@ -1,0 +1,127 @@
+"""The exported graphs: names, metadata, parity with PyTorch through the numpy runtime,
+agreement with onnx's reference evaluator, and an export that fails leaves nothing behind."""
+import json
+
+import numpy as np
+import onnx
+import pytest
+import torch
+from onnx.reference import ReferenceEvaluator
+
+from parq_export import checkpoint, verify
+from parq_export.export import export
+from parq_runtime.detector import Detector
+from parq_runtime.errors import ParqError
+from parq_runtime.model_card import METADATA_KEY
+
+from conftest import tiny_config
+
+
+def test_graphs_name_every_input_and_output_and_carry_the_card(tiny_model):
+    card = json.loads((tiny_model / "model.json").read_text())
+    for role, inputs, outputs in (
+            ("backbone", ["images", "cached_features", "camera", "T_local_camera",
+                          "key_value"],
+             ["features", "memory", "attention_keys", "attention_values", "key_map",
+              "value_map", "value_bias"]),
+            ("layer", ["query_content", "reference_points", "attention_keys",
+                       "attention_values", "key_map", "value_map", "value_bias"],
+             ["center", "size", "ortho6d", "rotation", "logits", "next_reference_points"])):
+        proto = onnx.load(tiny_model / f"{role}.onnx")
+        assert [i.name for i in proto.graph.input] == inputs
+        assert [o.name for o in proto.graph.output] == outputs
+        assert proto.opset_import[0].version in (17, 18)
+        meta = {p.key: p.value for p in proto.metadata_props}
+        assert meta["parq.graph"] == role
+        embedded = json.loads(meta[METADATA_KEY])
+        assert embedded["reference_points"] == card["reference_points"]
+        assert embedded["classes"] == card["classes"] == list(tiny_config().classes)
+        assert card["graphs"][role]["file"] == f"{role}.onnx"
+    assert card["checkpoint"]["layout"] == "parq-onnx"
+    assert len(card["checkpoint"]["sha256"]) == 64
+    assert card["verification"] and all(v["max_abs_diff"] <= v["tolerance"]
+                                        for v in card["verification"].values())
+
+
+@pytest.mark.parametrize("views,queries,iters", [(1, 5, 1), (2, 20, 3), (4, 45, 2),
+                                                 (3, 7, 9)])
+@pytest.mark.parametrize("form", ["cached", "folded"])
+def test_runtime_matches_torch(tiny_checkpoint, tiny_model, views, queries, iters, form):
+    """The whole loop (numpy sampling + ORT layer) against the torch model run the authors'
+    way (keys and values projected at every iteration)."""
+    model = checkpoint.load(tiny_checkpoint).model()
+    det = Detector(tiny_model)
+    rng = np.random.default_rng(views * 100 + queries)
+    camera, T_local_camera = verify.random_snippet(rng, views, model.config)
+    T_world_camera = T_local_camera.astype(np.float64)  # any world frame will do
+    w, h = model.config.image_size
+    images = [rng.integers(0, 256, (h, w, 3), dtype=np.uint8) for _ in range(views)]
+    K = np.array([[0.9 * w, 0, w / 2 - 0.5], [0, 0.9 * w, h / 2 - 0.5], [0, 0, 1]])
+    result = det.detect(images, K, T_world_camera, iters=iters, queries=queries, form=form,
+                        score_threshold=0.0)
+    assert result.form == form
+    net, cam, _, T_lc = det.prepare(images, K, T_world_camera)
+    with torch.no_grad():
+        expected = model(torch.from_numpy(net).permute(0, 3, 1, 2)[None].float() / 255,
+                         torch.from_numpy(cam).float()[None],
+                         torch.from_numpy(T_lc).float()[None], iterations=iters,
+                         reference_points=torch.from_numpy(det.reference_points(queries))
+                         .float())
+    assert len(result.iterations) == iters
+    for got, ref in zip(result.iterations, expected):
+        assert got.center.shape == (queries, 3)
+        np.testing.assert_allclose(got.reference, ref["reference"][0], atol=1e-4)
+        np.testing.assert_allclose(got.center, ref["center"][0], atol=1e-4)
+        np.testing.assert_allclose(got.rotation, ref["rotation"][0], atol=1e-3)
+        np.testing.assert_allclose(got.logits, ref["logits"][0], atol=1e-3)
+        np.testing.assert_allclose(got.size, ref["size"][0], rtol=1e-3)
+
+
+def test_graphs_agree_with_onnx_reference_evaluator(tiny_model):
+    rng = np.random.default_rng(3)
+    config = tiny_config()
+    w, h = config.image_size
+    fw, fh = config.feature_size
+    camera, T_local_camera = verify.random_snippet(rng, 2, config)
+    feeds = {"images": rng.integers(0, 256, (1, h, w, 3), dtype=np.uint8),
+             "cached_features": rng.normal(0, 1, (1, config.feature_dim, fh, fw))
+             .astype(np.float32),
+             "camera": camera, "T_local_camera": T_local_camera}
+    det = Detector(tiny_model)
+    for cached in (True, False):
+        inputs = dict(feeds, key_value=np.array(cached))
+        names = [o.name for o in det.backbone.get_outputs()]
+        ours = dict(zip(names, det.backbone.run(None, inputs)))
+        ref = dict(zip(names, ReferenceEvaluator(str(tiny_model / "backbone.onnx"))
+                       .run(None, inputs)))
+        for name in names:
+            assert ours[name].shape == ref[name].shape, name
+            np.testing.assert_allclose(ours[name], ref[name], atol=1e-4, rtol=1e-4,
+                                       err_msg=name)
+        operands = [ours[n] for n in ("attention_keys", "attention_values", "key_map",
+                                      "value_map", "value_bias")]
+        if not cached:
+            operands[0] = operands[1] = ours["memory"].reshape(1, -1, config.feature_dim)
+        layer_inputs = dict(zip([i.name for i in det.layer.get_inputs()],
+                                [rng.normal(0, 1, (9, config.feature_dim)).astype(np.float32),
+                                 rng.uniform(0, 1, (9, 3)).astype(np.float32), *operands]))
+        got = det.layer.run(None, layer_inputs)
+        want = ReferenceEvaluator(str(tiny_model / "layer.onnx")).run(None, layer_inputs)
+        for name, a, b in zip([o.name for o in det.layer.get_outputs()], got, want):
+            np.testing.assert_allclose(a, b, atol=1e-4, rtol=1e-4, err_msg=name)
+
+
+def test_failed_check_writes_nothing(tiny_checkpoint, tmp_path, monkeypatch):
+    monkeypatch.setattr(verify, "ABSOLUTE_TOLERANCE",
+                        {k: -1.0 for k in verify.ABSOLUTE_TOLERANCE})
+    with pytest.raises(ParqError, match="export check failed"):
+        export(tiny_checkpoint, tmp_path / "model", log=lambda *_: None)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_export_refuses_to_overwrite(tiny_checkpoint, tmp_path):
+    (tmp_path / "model").mkdir()
+    with pytest.raises(ParqError, match="already exists"):
+        export(tiny_checkpoint, tmp_path / "model", log=lambda *_: None)
+    with pytest.raises(ParqError, match="opset"):
+        export(tiny_checkpoint, tmp_path / "other", opset=20, log=lambda *_: None)

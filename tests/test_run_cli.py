@@ -1,0 +1,174 @@
+"""parq-run end to end, without torch, and with bad input of every kind."""
+import json
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from parq_runtime import cli
+from parq_runtime.results import SCHEMA
+
+from conftest import ROOT, write_scannet
+
+BLOCK_TORCH = textwrap.dedent("""
+    import sys
+    class Block:
+        def find_spec(self, name, path=None, target=None):
+            if name == "torch" or name.startswith("torch."):
+                raise ImportError("torch is blocked in this test")
+    sys.meta_path.insert(0, Block())
+""")
+
+
+def run_cli(*args):
+    """parq-run in a fresh interpreter; returns (code, stdout, stderr)."""
+    p = subprocess.run([sys.executable, "-c", BLOCK_TORCH +
+                        "from parq_runtime.cli import main; sys.exit(main(sys.argv[1:]))",
+                        *map(str, args)], capture_output=True, text=True, cwd=ROOT)
+    return p.returncode, p.stdout, p.stderr
+
+
+def test_runtime_works_where_torch_cannot_be_imported(tiny_model, scannet_folder):
+    code = BLOCK_TORCH + textwrap.dedent(f"""
+        import numpy as np
+        from parq_runtime import Detector
+        from parq_runtime.readers import open_capture
+        capture = open_capture({str(scannet_folder)!r})
+        frames = capture.frames[:3]
+        det = Detector({str(tiny_model)!r})
+        r = det.detect([f.load_image() for f in frames], frames[0].intrinsics,
+                       np.stack([f.cam_to_world for f in frames]), iters=3, queries=25,
+                       score_threshold=0.0, region=False)
+        assert len(r.iterations) == 3 and r.iterations[0].logits.shape == (25, 10)
+        assert "torch" not in sys.modules
+        try:
+            import torch
+        except ImportError:
+            print("blocked")
+    """)
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == "blocked"
+
+
+@pytest.mark.parametrize("authors_names", [False, True])
+def test_parq_run_end_to_end(tiny_model, tmp_path, authors_names):
+    folder = write_scannet(tmp_path / "scene", frames=14, authors_names=authors_names)
+    out = tmp_path / "out.json"
+    code, stdout, stderr = run_cli(folder, "--model", tiny_model, "--iters", 2, "--queries",
+                                   16, "--score-threshold", 0, "--all-regions", "-o", out)
+    assert code == 0, stderr
+    assert stdout == ""
+    data = json.loads(out.read_text())
+    assert data["schema"] == SCHEMA and data["version"] == 1
+    assert data["capture"]["frames"] == 14 and data["capture"]["format"] == "scannet"
+    # 0.15 m steps: every frame is a keyframe; 14 // 3 = 4 non-overlapping snippets
+    assert data["capture"]["keyframes"] == 14
+    assert [s["frames"] for s in data["snippets"]] == [
+        [str(i) for i in range(s, s + 3)] for s in (0, 3, 6, 9)]
+    total = sum(len(s["boxes"]) for s in data["snippets"])
+    assert 0 < len(data["scene"]["boxes"]) <= total
+    box = data["scene"]["boxes"][0]
+    assert set(box) >= {"class", "label", "score", "center", "size", "rotation", "yaw",
+                        "corners", "snippet"}
+    R = np.array(box["rotation"])
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-5)
+    # same run to stdout, sliding windows and a snippet cap
+    code, stdout, _ = run_cli(folder, "--model", tiny_model, "--queries", 8, "--stride", 1,
+                              "--max-snippets", 5, "-q")
+    assert code == 0
+    assert len(json.loads(stdout)["snippets"]) == 5
+
+
+def _one_line_error(code, stdout, stderr, *needles):
+    assert code == 2, (code, stderr)
+    assert "Traceback" not in stderr
+    lines = [line for line in stderr.strip().splitlines() if line]
+    assert len(lines) == 1 or lines[0].startswith("usage:"), stderr
+    for needle in needles:
+        assert needle in stderr, (needle, stderr)
+
+
+def test_bad_arguments(tiny_model, scannet_folder, tmp_path):
+    for args, needle in ((["--iters", 0], "--iters"), (["--queries", -3], "--queries"),
+                         (["--queries", "many"], "--queries"),
+                         (["--queries", 5000], "queries = 5000"),
+                         (["--views", 0], "--views"), (["--form", "fast"], "--form"),
+                         (["--threads", 0], "--threads")):
+        out = tmp_path / "x.json"
+        _one_line_error(*run_cli(scannet_folder, "--model", tiny_model, "-o", out, *args),
+                        needle)
+        assert not out.exists()
+
+
+def test_bad_model_folders(tiny_model, scannet_folder, tmp_path):
+    _one_line_error(*run_cli(scannet_folder, "--model", tmp_path / "nope"), "not found")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    _one_line_error(*run_cli(scannet_folder, "--model", empty), "no model.json")
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    for f in ("model.json", "backbone.onnx"):
+        (broken / f).write_bytes((tiny_model / f).read_bytes())
+    _one_line_error(*run_cli(scannet_folder, "--model", broken), "layer.onnx",
+                    "missing from the model folder")
+    (broken / "layer.onnx").write_bytes(b"not onnx")
+    _one_line_error(*run_cli(scannet_folder, "--model", broken), "layer.onnx",
+                    "does not match the model card")
+    old = tmp_path / "old"
+    old.mkdir()
+    for f in ("backbone.onnx", "layer.onnx"):
+        (old / f).write_bytes((tiny_model / f).read_bytes())
+    card = json.loads((tiny_model / "model.json").read_text())
+    card["format_version"] = 99
+    (old / "model.json").write_text(json.dumps(card))
+    _one_line_error(*run_cli(scannet_folder, "--model", old), "format 99", "export")
+
+
+def test_bad_captures(tiny_model, tmp_path):
+    def fresh(name, **kw):
+        return write_scannet(tmp_path / name, **kw)
+
+    _one_line_error(*run_cli(tmp_path / "missing", "--model", tiny_model), "not found")
+    (tmp_path / "emptydir").mkdir()
+    _one_line_error(*run_cli(tmp_path / "emptydir", "--model", tiny_model),
+                    "no known capture layout")
+    f = fresh("nopose")
+    (f / "pose" / "4.txt").unlink()
+    _one_line_error(*run_cli(f, "--model", tiny_model), "no pose", "4.png")
+    f = fresh("extra")
+    np.savetxt(f / "pose" / "40.txt", np.eye(4))
+    _one_line_error(*run_cli(f, "--model", tiny_model), "no colour frame", "40.txt")
+    f = fresh("nan")
+    (f / "pose" / "2.txt").write_text("1 0 0 0\n0 nan 0 0\n0 0 1 0\n0 0 0 1\n")
+    _one_line_error(*run_cli(f, "--model", tiny_model), "2.txt", "NaN")
+    f = fresh("scaled")
+    np.savetxt(f / "pose" / "3.txt", np.diag([2.0, 2, 2, 1]))
+    _one_line_error(*run_cli(f, "--model", tiny_model), "3.txt", "not a rotation")
+    f = fresh("short")
+    (f / "pose" / "5.txt").write_text("1 0 0\n")
+    _one_line_error(*run_cli(f, "--model", tiny_model), "5.txt", "expected 4x4")
+    f = fresh("corrupt")
+    (f / "color" / "1.png").write_bytes(b"\x89PNG garbage")
+    out = tmp_path / "corrupt.json"
+    _one_line_error(*run_cli(f, "--model", tiny_model, "-o", out), "1.png",
+                    "not a readable image")
+    assert not out.exists()
+    f = fresh("intrinsics")
+    np.savetxt(f / "intrinsic" / "intrinsic_color.txt", np.diag([500.0, 500, 1, 1]))
+    _one_line_error(*run_cli(f, "--model", tiny_model), "principal point",
+                    "do not fit")
+    f = fresh("few", frames=2)
+    _one_line_error(*run_cli(f, "--model", tiny_model), "fewer than one snippet")
+    f = fresh("unwritable")
+    _one_line_error(*run_cli(f, "--model", tiny_model, "-o", tmp_path / "no" / "x.json"),
+                    "does not exist")
+
+
+def test_help_describes_every_flag():
+    text = cli.parser().format_help()
+    for action in cli.parser()._actions:
+        assert action.help, action.dest
+    assert "--iters" in text and "--queries" in text
