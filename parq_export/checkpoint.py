@@ -8,10 +8,10 @@ Three layouts are read:
 * this package's own format ``{'format': 'parq-onnx', 'format_version': 1, 'config': {...},
   'state_dict': {...}}``.
 
-Every file goes through ``torch.load(weights_only=True)``: torch's restricted unpickler, which
-only rebuilds tensors and plain containers.  Classes a checkpoint names beyond those (yacs'
-CfgNode, Lightning's AttributeDict, ...) are replaced by :class:`Inert` stand-ins that only
-record their pickled state, so no code from the file runs.
+Every file is unpickled by :class:`_RestrictedUnpickler`, which resolves only the names on
+torch's weights-only allow-list (tensor rebuilders, plain containers).  Classes a checkpoint
+names beyond those (yacs' CfgNode, Lightning's AttributeDict, ...) are replaced by
+:class:`Inert` stand-ins that only record their pickled state, so no code from the file runs.
 
 The authors' key names are mapped to this package's (``backbone2d.resnet_fpn.body.*`` ->
 ``backbone.body.*`` ...).  Their heads are stored twice (``box3d_decoder.mlp_heads.*`` and
@@ -26,7 +26,6 @@ import hashlib
 import pathlib
 import pickle
 import re
-import zipfile
 from dataclasses import dataclass, field
 
 import torch
@@ -53,15 +52,22 @@ OFFICIAL_HEAD_COPY = ("box3d_decoder.parq_module.decoder.mlp_heads.", "box3d_dec
 
 
 class Inert(dict):
-    """Stand-in for a class named in a checkpoint: keeps constructor arguments, dict items and
-    pickled state as data; has no behaviour."""
+    """Stand-in for a class or function named in a checkpoint outside torch's allow-list: it
+    keeps constructor arguments, items and pickled state as plain data and has no behaviour."""
 
     def __init__(self, *args, **kwargs):
         super().__init__()
         self.args = args
+        self.items_ = []
 
     def __setstate__(self, state):
         self.state = state
+
+    def append(self, item):
+        self.items_.append(item)
+
+    def extend(self, items):
+        self.items_.extend(items)
 
 
 def _stand_in(qualified: str) -> type:
@@ -69,22 +75,43 @@ def _stand_in(qualified: str) -> type:
     return type(name, (Inert,), {"__module__": module, "__qualname__": name})
 
 
+class _RestrictedUnpickler(pickle.Unpickler):
+    """Python's documented way to unpickle untrusted data: ``find_class`` is the only door to
+    code, and it opens only on torch's weights-only allow-list (tensor and storage rebuilders,
+    plain containers, dtypes); every other name becomes an :class:`Inert` stand-in.  torch's
+    own ``weights_only`` unpickler is not used as is because it refuses the dict subclasses
+    (yacs' CfgNode, Lightning's AttributeDict) that training checkpoints hold."""
+
+    def find_class(self, module, name):
+        allowed = torch._weights_only_unpickler._get_allowed_globals()
+        qualified = f"{module}.{name}"
+        if qualified in allowed:
+            return allowed[qualified]
+        return _stand_in(qualified)
+
+
+class _RestrictedPickle:
+    """The ``pickle_module`` handed to torch.load."""
+
+    Unpickler = _RestrictedUnpickler
+    __name__ = "parq_restricted_pickle"
+
+    @staticmethod
+    def load(file, **kwargs):
+        return _RestrictedUnpickler(file, **kwargs).load()
+
+
 def safe_load(path) -> object:
-    """torch.load(weights_only=True) with inert stand-ins for the non-tensor classes a
-    checkpoint names.  Raises ParqError for unreadable files."""
+    """torch.load through :class:`_RestrictedUnpickler`; ParqError for unreadable files."""
     path = pathlib.Path(path)
     if not path.is_file():
         raise ParqError(f"{path}: checkpoint not found")
     try:
-        names = torch.serialization.get_unsafe_globals_in_checkpoint(str(path))
-    except (zipfile.BadZipFile, RuntimeError, pickle.UnpicklingError, EOFError, ValueError) as e:
-        raise ParqError(f"{path}: not a readable PyTorch checkpoint ({e})") from None
-    try:
-        with torch.serialization.safe_globals([_stand_in(n) for n in names]):
-            return torch.load(str(path), map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, AttributeError, TypeError) as e:
+        return torch.load(str(path), map_location="cpu", weights_only=False,
+                          pickle_module=_RestrictedPickle)
+    except Exception as e:  # any failure to parse is the file's fault, never code from it
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise ParqError(f"{path}: cannot be loaded safely ({first})") from None
+        raise ParqError(f"{path}: not a readable PyTorch checkpoint ({first})") from None
 
 
 @dataclass
