@@ -1,0 +1,153 @@
+"""parq-eval: scene-level precision, recall and F1 at 3D IoU 0.25, 0.5 and 0.7.
+
+The authors' protocol (ODAM's, ``utils/f1_eval.py``): the scene's fused predictions are compared
+with its ground-truth boxes; a prediction is a true positive when it has the ground truth's
+class and their upright 3D IoU is above the threshold, and each ground-truth box is matched at
+most once.  Precision = TP / predictions, recall = TP / ground-truth boxes, F1 their harmonic
+mean, per class and over all classes pooled (micro average).
+
+Three deliberate differences from their code, each documented in the README:
+
+* one prediction matches at most one ground-truth box.  Their loop goes on after a match, so
+  one prediction overlapping two boxes of its class counted two true positives;
+* within a class, predictions are matched in decreasing score, each to the unmatched box it
+  overlaps most (theirs: prediction list order, first box above the threshold).
+* the pooled average counts every class.  Theirs skips classes with no prediction at all, so
+  the ground truth of a class the model never predicts did not lower recall.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+
+import numpy as np
+
+from . import geometry
+from .boxes import Box
+from .errors import ParqError
+from .iou import iou_matrix
+
+THRESHOLDS = (0.25, 0.5, 0.7)
+BOXES_FORMAT = "parq-onnx-boxes"
+
+
+def load_ground_truth(path) -> tuple:
+    """(boxes, up) from a boxes.json written by parq-synth (or by hand, same schema)."""
+    path = pathlib.Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ParqError(f"{path}: not found") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ParqError(f"{path}: not readable JSON ({e})") from None
+    if not isinstance(data, dict) or data.get("format") != BOXES_FORMAT:
+        raise ParqError(f"{path}: not a ground-truth boxes.json (format {BOXES_FORMAT!r})")
+    try:
+        boxes = [Box.from_json(b) for b in data["boxes"]]
+        up = tuple(float(v) for v in data.get("up", geometry.UP_Z))
+    except (KeyError, TypeError, ValueError) as e:
+        raise ParqError(f"{path}: malformed box ({e})") from None
+    return boxes, up
+
+
+def match_counts(predictions: list, truth: list, threshold: float, classes: list,
+                 up=geometry.UP_Z) -> dict:
+    """Per-class {"tp", "predictions", "ground_truth"} for one scene."""
+    counts = {c: {"tp": 0, "predictions": 0, "ground_truth": 0} for c in classes}
+    for name in classes:
+        preds = sorted((p for p in predictions if p.class_name == name),
+                       key=lambda p: -p.score)
+        gts = [g for g in truth if g.class_name == name]
+        counts[name]["predictions"] = len(preds)
+        counts[name]["ground_truth"] = len(gts)
+        if not preds or not gts:
+            continue
+        iou = iou_matrix(preds, gts, up)
+        used = np.zeros(len(gts), dtype=bool)
+        for i in range(len(preds)):
+            candidates = np.where(~used & (iou[i] > threshold), iou[i], -1.0)
+            j = int(np.argmax(candidates))
+            if candidates[j] > 0:
+                used[j] = True
+                counts[name]["tp"] += 1
+    return counts
+
+
+def classes_of(*box_lists) -> list:
+    """Class names present, in label order."""
+    labels = {}
+    for boxes in box_lists:
+        for b in boxes:
+            labels.setdefault(b.class_name, b.label)
+    return sorted(labels, key=lambda name: (labels[name], name))
+
+
+def _prf(tp, n_pred, n_gt) -> dict:
+    precision = tp / n_pred if n_pred else 0.0
+    recall = tp / n_gt if n_gt else 0.0
+    f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+    return {"precision": precision, "recall": recall, "f1": f1, "tp": tp,
+            "predictions": n_pred, "ground_truth": n_gt}
+
+
+def evaluate(scenes: list, classes=None, thresholds=THRESHOLDS) -> dict:
+    """scenes: [(predicted boxes, ground-truth boxes, up), ...]; counts are pooled over
+    scenes.  Returns {"0.25": {"precision", "recall", "f1", "per_class": {...}}, ...}."""
+    if classes is None:
+        classes = classes_of(*[preds + gts for preds, gts, _ in scenes])
+    out = {}
+    for t in thresholds:
+        total = {c: {"tp": 0, "predictions": 0, "ground_truth": 0} for c in classes}
+        for preds, gts, up in scenes:
+            for c, n in match_counts(preds, gts, t, classes, up).items():
+                for k in n:
+                    total[c][k] += n[k]
+        pooled = [sum(total[c][k] for c in classes)
+                  for k in ("tp", "predictions", "ground_truth")]
+        out[str(t)] = dict(_prf(*pooled),
+                           per_class={c: _prf(total[c]["tp"], total[c]["predictions"],
+                                              total[c]["ground_truth"]) for c in classes})
+    return out
+
+
+def format_table(metrics: dict) -> str:
+    lines = [f"{'IoU':>5}  {'precision':>9}  {'recall':>6}  {'F1':>6}"]
+    for t, m in metrics.items():
+        lines.append(f"{t:>5}  {m['precision']:9.3f}  {m['recall']:6.3f}  {m['f1']:6.3f}")
+    classes = list(next(iter(metrics.values()))["per_class"])
+    lines.append("")
+    lines.append(f"{'class':12s} " + "  ".join(f"F1@{t:<5}" for t in metrics) + "  gt")
+    for c in classes:
+        row = [metrics[t]["per_class"][c]["f1"] for t in metrics]
+        gt = next(iter(metrics.values()))["per_class"][c]["ground_truth"]
+        lines.append(f"{c:12s} " + "  ".join(f"{v:8.3f}" for v in row) + f"  {gt}")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    from .results import load_scene_boxes
+
+    p = argparse.ArgumentParser(
+        prog="parq-eval",
+        description="Scene-level precision / recall / F1 of parq-run's fused boxes against "
+                    "ground truth, at 3D IoU 0.25, 0.5 and 0.7 (the authors' protocol, with "
+                    "one prediction matching at most one box).")
+    p.add_argument("predictions", type=pathlib.Path, help="parq-run output JSON")
+    p.add_argument("ground_truth", type=pathlib.Path, help="boxes.json of the scene")
+    p.add_argument("--json", action="store_true", help="print the metrics as JSON")
+    args = p.parse_args(argv)
+    try:
+        truth, up = load_ground_truth(args.ground_truth)
+        predictions = load_scene_boxes(args.predictions)
+        metrics = evaluate([(predictions, truth, up)], classes_of(predictions, truth))
+    except ParqError as e:
+        print(f"parq-eval: error: {e}", file=sys.stderr)
+        return e.exit_code
+    print(json.dumps(metrics, indent=1) if args.json else format_table(metrics))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

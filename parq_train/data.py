@@ -1,0 +1,120 @@
+"""Training snippets from generated scenes (ScanNet layout + boxes.json).
+
+Each scene is cut into snippets of ``views`` keyframes exactly as ``parq-run`` does (0.1 m /
+15 degree keyframes), with windows every ``stride`` keyframes.  A snippet's targets are the
+scene's boxes that it sees, expressed in the snippet's local frame: a box counts as seen when
+its center lies inside the decoder box and, in at least one view, projects into the image in
+front of the camera without something nearer in the depth map covering it.
+
+Everything is loaded once into memory: images as uint8 at the network size.
+"""
+from __future__ import annotations
+
+import json
+import pathlib
+from dataclasses import dataclass
+
+import numpy as np
+from PIL import Image
+
+from parq_runtime import geometry, keyframes, preprocess
+from parq_runtime.errors import ParqError
+from parq_runtime.readers import open_capture
+
+
+@dataclass
+class Snippet:
+    """images (N, h, w, 3) uint8; camera (N, 4) feature-resolution pinholes; T_local_camera
+    (N, 4, 4); targets in the local frame: labels (M,), centers (M, 3), sizes (M, 3),
+    rotations (M, 3, 3) = R_local_object."""
+
+    scene: str
+    images: np.ndarray
+    camera: np.ndarray
+    T_local_camera: np.ndarray
+    labels: np.ndarray
+    centers: np.ndarray
+    sizes: np.ndarray
+    rotations: np.ndarray
+
+
+def read_boxes(path) -> list:
+    data = json.loads(pathlib.Path(path).read_text())
+    if data.get("format") != "parq-onnx-boxes":
+        raise ParqError(f"{path}: not a boxes.json of parq-synth")
+    return data["boxes"]
+
+
+def _inside(points, scale) -> np.ndarray:
+    lo, hi = np.asarray(scale[0::2]), np.asarray(scale[1::2])
+    return np.all((points > lo) & (points < hi), -1)
+
+
+def scene_snippets(folder, config, views: int = 3, stride: int = 1) -> list:
+    """Snippets of one generated scene for a model with ``config`` (PARQConfig)."""
+    folder = pathlib.Path(folder)
+    capture = open_capture(folder, "scannet")
+    boxes = read_boxes(folder / "boxes.json")
+    labels = np.array([b["label"] for b in boxes], dtype=np.int64)
+    centers_world = np.array([b["center"] for b in boxes], dtype=np.float64).reshape(-1, 3)
+    sizes = np.array([b["size"] for b in boxes], dtype=np.float64).reshape(-1, 3)
+    R_world_object = np.array([b["rotation"] for b in boxes], dtype=np.float64).reshape(-1, 3, 3)
+    keys = keyframes.select([f.cam_to_world for f in capture.frames])
+    out = []
+    cache = {}
+    for window in keyframes.windows(keys, views, stride):
+        frames = [capture.frames[i] for i in window]
+        images, K_net, depths = [], [], []
+        for f in frames:
+            if f.name not in cache:
+                image, K = preprocess.prepare(f.load_image(), f.intrinsics, config.image_size)
+                depth_path = folder / "depth" / f"{f.name}.png"
+                depth = np.asarray(Image.open(depth_path), dtype=np.float64) / 1000.0
+                cache[f.name] = (image, K, depth, f.intrinsics)
+            images.append(cache[f.name][0])
+            K_net.append(cache[f.name][1])
+            depths.append(cache[f.name][2:])
+        T_world_camera = np.stack([f.cam_to_world for f in frames])
+        T_world_local = geometry.snippet_frame(T_world_camera)
+        T_local_world = geometry.invert(T_world_local)
+        T_local_camera = T_local_world @ T_world_camera
+        centers_local = centers_world @ T_local_world[:3, :3].T + T_local_world[:3, 3]
+        seen = _inside(centers_local, config.decoder_scale) & visible(
+            centers_world, sizes, T_world_camera, depths)
+        camera = geometry.scale_camera(geometry.pinhole(np.stack(K_net)),
+                                       1.0 / config.feature_stride)
+        out.append(Snippet(
+            folder.name, np.stack(images), camera.astype(np.float32),
+            T_local_camera.astype(np.float32), labels[seen],
+            centers_local[seen].astype(np.float32), sizes[seen].astype(np.float32),
+            (T_local_world[:3, :3] @ R_world_object[seen]).astype(np.float32)))
+    return out
+
+
+def visible(centers_world, sizes, T_world_camera, depths, margin: float = 0.1) -> np.ndarray:
+    """Whether each box center is seen by some view: in front (z > 0.2 m), inside the image,
+    and not behind a surface nearer than its center minus half its largest extent."""
+    seen = np.zeros(len(centers_world), dtype=bool)
+    for T, (depth, K) in zip(T_world_camera, depths):
+        h, w = depth.shape
+        p = centers_world @ geometry.invert(T)[:3, :3].T + geometry.invert(T)[:3, 3]
+        uv, ok = geometry.project(p, geometry.pinhole(K), (w, h))
+        ok &= p[:, 2] > 0.2
+        u = np.clip(np.round(uv[:, 0]).astype(int), 0, w - 1)
+        v = np.clip(np.round(uv[:, 1]).astype(int), 0, h - 1)
+        surface = depth[v, u]
+        ok &= (surface == 0) | (surface >= p[:, 2] - sizes.max(1) / 2 - margin)
+        seen |= ok
+    return seen
+
+
+def load_scenes(root, config, views: int = 3, stride: int = 1, log=print) -> list:
+    folders = sorted(p for p in pathlib.Path(root).iterdir() if (p / "boxes.json").is_file())
+    if not folders:
+        raise ParqError(f"{root}: no generated scenes (folders with boxes.json)")
+    snippets = []
+    for folder in folders:
+        snippets += scene_snippets(folder, config, views, stride)
+    log(f"{len(snippets)} snippets from {len(folders)} scenes, "
+        f"{sum(len(s.labels) for s in snippets)} targets")
+    return snippets

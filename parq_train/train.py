@@ -1,0 +1,118 @@
+"""Training loop for a small PARQ on generated scenes (CPU).
+
+There are no pretrained weights here, so the ResNet trains from scratch with ordinary
+BatchNorm; at the end each BatchNorm's statistics and affine terms are moved into the
+FrozenBatchNorm2d the exported architecture uses (same four tensors, same eps).
+
+The schedule is a fixed number of steps (AdamW, linear warm-up then cosine decay, gradient
+clipping at 1.0 as the authors), so the same seed gives the same model whatever the machine's
+speed; the command records how long it took.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import torch
+from torch import nn
+
+from parq_export.backbone import FrozenBatchNorm2d
+from parq_export.model import PARQ
+
+from .loss import total_loss
+
+
+def swap_norms(module: nn.Module, to_trainable: bool) -> nn.Module:
+    """FrozenBatchNorm2d <-> BatchNorm2d, carrying weight, bias and running statistics."""
+    for name, child in list(module.named_children()):
+        if to_trainable and isinstance(child, FrozenBatchNorm2d):
+            new = nn.BatchNorm2d(child.weight.numel(), eps=child.eps)
+        elif not to_trainable and isinstance(child, nn.BatchNorm2d):
+            new = FrozenBatchNorm2d(child.num_features, eps=child.eps)
+        else:
+            swap_norms(child, to_trainable)
+            continue
+        with torch.no_grad():
+            for key in ("weight", "bias", "running_mean", "running_var"):
+                getattr(new, key).copy_(getattr(child, key))
+        setattr(module, name, new)
+    return module
+
+
+def init_reference_points(model: PARQ, generator: torch.Generator) -> None:
+    """Learned reference points start uniform in the decoder box (in logit space)."""
+    with torch.no_grad():
+        u = torch.rand(model.refpoint.weight.shape, generator=generator) * 0.9 + 0.05
+        model.refpoint.weight.copy_(torch.log(u / (1 - u)))
+
+
+def to_batch(snippets: list, augment: np.random.Generator | None = None) -> tuple:
+    images = np.stack([s.images for s in snippets]).astype(np.float32) / 255.0
+    if augment is not None:  # brightness / contrast / colour jitter per image
+        B, N = images.shape[:2]
+        gain = augment.uniform(0.75, 1.25, (B, N, 1, 1, 1))
+        tint = augment.uniform(0.9, 1.1, (B, N, 1, 1, 3))
+        offset = augment.uniform(-0.08, 0.08, (B, N, 1, 1, 1))
+        images = np.clip(images * gain * tint + offset, 0.0, 1.0).astype(np.float32)
+    images = torch.from_numpy(images).permute(0, 1, 4, 2, 3).contiguous()
+    camera = torch.from_numpy(np.stack([s.camera for s in snippets]))
+    T_local_camera = torch.from_numpy(np.stack([s.T_local_camera for s in snippets]))
+    targets = [{"labels": torch.from_numpy(s.labels), "centers": torch.from_numpy(s.centers),
+                "sizes": torch.from_numpy(s.sizes), "rotations": torch.from_numpy(s.rotations)}
+               for s in snippets]
+    return images, camera, T_local_camera, targets
+
+
+def learning_rate(step: int, steps: int, peak: float, warmup: int) -> float:
+    if step < warmup:
+        return peak * (step + 1) / warmup
+    progress = (step - warmup) / max(1, steps - warmup)
+    return peak * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * progress)))
+
+
+def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_size: int = 4,
+          lr: float = 4e-4, iterations: int = 4, log=print, log_every: int = 50) -> tuple:
+    """Train a PARQ on the snippets; returns (model with frozen norms, history)."""
+    torch.manual_seed(seed)
+    generator = torch.Generator().manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    model = swap_norms(PARQ(config), to_trainable=True)
+    init_reference_points(model, generator)
+    model.train()
+    decay, no_decay = [], []
+    for name, p in model.named_parameters():
+        (no_decay if p.dim() < 2 or name.startswith("refpoint") else decay).append(p)
+    optimizer = torch.optim.AdamW([{"params": decay, "weight_decay": 1e-4},
+                                   {"params": no_decay, "weight_decay": 0.0}], lr=lr)
+    folds = torch.as_tensor(folds_of_class)
+    history = []
+    order = []
+    start = time.perf_counter()
+    running = {}
+    for step in range(steps):
+        if len(order) < batch_size:
+            order += list(rng.permutation(len(snippets)))
+        batch = [snippets[i] for i in order[:batch_size]]
+        del order[:batch_size]
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate(step, steps, lr, warmup=min(500, steps // 10))
+        images, camera, T_local_camera, targets = to_batch(batch, rng)
+        outputs = model(images, camera, T_local_camera, iterations=iterations, form="cached")
+        loss, parts = total_loss(outputs, targets, folds, len(config.classes))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        optimizer.step()
+        for k, v in dict(parts, total=float(loss.detach())).items():
+            running[k] = running.get(k, 0.0) + v
+        if (step + 1) % log_every == 0 or step + 1 == steps:
+            mean = {k: v / log_every for k, v in running.items()}
+            elapsed = time.perf_counter() - start
+            history.append({"step": step + 1, "seconds": round(elapsed, 1), **mean})
+            log(f"step {step + 1}/{steps}  {elapsed / 60:5.1f} min  loss {mean['total']:.3f}  "
+                + "  ".join(f"{k} {mean[k]:.3f}" for k in ("center", "size", "rotation",
+                                                           "class")))
+            running = {}
+    model = swap_norms(model, to_trainable=False).eval()
+    return model, history

@@ -1,0 +1,116 @@
+"""IoU, scene fusion and the F1 evaluator on hand-made cases with known answers."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from parq_runtime import geometry
+from parq_runtime.boxes import Box
+from parq_runtime.evaluation import evaluate, match_counts
+from parq_runtime.fusion import SceneFusion
+from parq_runtime.iou import iou_upright
+
+Y_UP = (0.0, 1.0, 0.0)
+
+
+def box(center, size=(1, 1, 1), yaw=0.0, name="chair", score=0.9, up=geometry.UP_Z):
+    e1, e2 = geometry.horizontal_basis(up)
+    x = np.cos(yaw) * e1 + np.sin(yaw) * e2
+    y = np.asarray(up, dtype=float)
+    R = np.stack([x, y, np.cross(x, y)], -1)
+    labels = {"chair": 0, "table": 1}
+    return Box(np.asarray(center, float), np.asarray(size, float), R, yaw, labels[name], name,
+               score, geometry.box_corners(np.asarray(center, float), np.asarray(size, float), R))
+
+
+@pytest.mark.parametrize("up", [geometry.UP_Z, Y_UP])
+def test_iou_known_values(up):
+    up_v = np.asarray(up)
+    e1, e2 = geometry.horizontal_basis(up)
+    a = box([0, 0, 0], up=up)
+    assert iou_upright(a, box([0, 0, 0], up=up), up) == pytest.approx(1.0)
+    # half a box along a horizontal axis: overlap 1/2, union 3/2
+    assert iou_upright(a, box(0.5 * e1, up=up), up) == pytest.approx(1 / 3)
+    # half a box up: same
+    assert iou_upright(a, box(0.5 * up_v, up=up), up) == pytest.approx(1 / 3)
+    # 45 degrees about up: the footprints intersect in a regular octagon of area 2(sqrt2 - 1)
+    octagon = 2 * (np.sqrt(2) - 1)
+    assert iou_upright(a, box([0, 0, 0], yaw=np.pi / 4, up=up), up) == \
+        pytest.approx(octagon / (2 - octagon), rel=1e-5)
+    # a 2x1x1 box turned 90 degrees over another: footprint overlap 1, height 1, union 3
+    long_a = box([0, 0, 0], size=(2, 1, 1), up=up)
+    long_b = box([0, 0, 0], size=(2, 1, 1), yaw=np.pi / 2, up=up)
+    assert iou_upright(long_a, long_b, up) == pytest.approx(1 / 3, rel=1e-5)
+    assert iou_upright(a, box(2 * e2, up=up), up) == 0.0
+    assert iou_upright(a, box(1.5 * up_v, up=up), up) == 0.0
+
+
+def test_matching_counts_and_one_prediction_per_box():
+    gts = [box([0, 0, 0.5]), box([3, 0, 0.5])]
+    preds = [box([0, 0, 0.5], score=0.95),                  # exact: TP
+             box([0.05, 0, 0.5], score=0.9),                 # duplicate of the same box: FP
+             box([3.4, 0, 0.5], score=0.8)]                  # IoU 0.6/1.4 = 0.43
+    c = match_counts(preds, gts, 0.25, ["chair"])["chair"]
+    assert c == {"tp": 2, "predictions": 3, "ground_truth": 2}
+    c = match_counts(preds, gts, 0.5, ["chair"])["chair"]
+    assert c["tp"] == 1
+    # one big prediction over two small boxes of its class counts once (the authors' loop
+    # counted it twice)
+    small = [box([-0.25, 0, 0.5], size=(0.5, 1, 1)), box([0.25, 0, 0.5], size=(0.5, 1, 1))]
+    big = [box([0, 0, 0.5], size=(1, 1, 1))]
+    assert match_counts(big, small, 0.25, ["chair"])["chair"]["tp"] == 1
+    # the class must agree
+    assert match_counts([box([0, 0, 0.5], name="table")], gts, 0.25,
+                        ["chair", "table"])["table"]["tp"] == 0
+
+
+def test_precision_recall_f1_pooled_over_scenes_and_classes():
+    scene1 = ([box([0, 0, 0.5]), box([5, 5, 0.5], name="table")],       # 1 TP, 1 FP
+              [box([0, 0, 0.5]), box([2, 0, 0.5])], geometry.UP_Z)      # 2 chairs
+    scene2 = ([box([1, 1, 0.5], name="table")],                         # 1 TP
+              [box([1, 1, 0.5], name="table"), box([9, 9, 0.5], name="table")], geometry.UP_Z)
+    m = evaluate([scene1, scene2], ["chair", "table"])
+    for t in ("0.25", "0.5", "0.7"):
+        # TP 2, predictions 3, ground truth 4
+        assert m[t]["precision"] == pytest.approx(2 / 3)
+        assert m[t]["recall"] == pytest.approx(2 / 4)
+        assert m[t]["f1"] == pytest.approx(2 * (2 / 3) * 0.5 / (2 / 3 + 0.5))
+        assert m[t]["per_class"]["chair"]["recall"] == pytest.approx(0.5)
+        assert m[t]["per_class"]["table"]["precision"] == pytest.approx(0.5)
+
+
+def test_scene_fusion_replaces_by_score_and_adds_unmatched():
+    fusion = SceneFusion()
+    fusion.add([box([0, 0, 0.5], score=0.85), box([3, 0, 0.5], score=0.9)], 0)
+    # overlaps the first (IoU 0.82): replaces it (higher score); a far one is added; one
+    # overlapping the second with a lower score leaves it alone
+    fusion.add([box([0.1, 0, 0.5], score=0.95), box([8, 0, 0.5], score=0.99),
+                box([3.05, 0, 0.5], score=0.5)], 1)
+    assert len(fusion.boxes) == 3
+    assert fusion.boxes[0].score == 0.95 and fusion.sources[0] == 1
+    assert fusion.boxes[1].score == 0.9 and fusion.sources[1] == 0
+    # IoU under 0.1 does not match: 0.95 of a box away
+    fusion.add([box([1.05, 0.0, 0.5], score=0.99)], 2)
+    assert len(fusion.boxes) == 4
+
+
+def test_parq_eval_cli(tmp_path):
+    gt = {"format": "parq-onnx-boxes", "version": 1, "frame": "world", "up": [0, 0, 1],
+          "boxes": [box([0, 0, 0.5]).to_json(), box([2, 0, 0.5]).to_json()]}
+    (tmp_path / "boxes.json").write_text(json.dumps(gt))
+    pred = {"schema": "parq-onnx/detections", "version": 1,
+            "scene": {"boxes": [box([0, 0, 0.5]).to_json()]}}
+    (tmp_path / "pred.json").write_text(json.dumps(pred))
+    p = subprocess.run([sys.executable, "-m", "parq_runtime.evaluation", tmp_path / "pred.json",
+                        tmp_path / "boxes.json", "--json"], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    m = json.loads(p.stdout)
+    assert set(m) == {"0.25", "0.5", "0.7"}
+    assert m["0.5"]["precision"] == 1.0 and m["0.5"]["recall"] == 0.5
+    assert set(m["0.5"]) == {"precision", "recall", "f1", "per_class", "tp", "predictions",
+                             "ground_truth"}
+    p = subprocess.run([sys.executable, "-m", "parq_runtime.evaluation", tmp_path / "nope.json",
+                        tmp_path / "boxes.json"], capture_output=True, text=True)
+    assert p.returncode == 2 and "Traceback" not in p.stderr and "nope.json" in p.stderr
