@@ -1,0 +1,70 @@
+"""The training objective and loop."""
+import math
+
+import numpy as np
+import torch
+
+from parq_export import verify
+from parq_export.model import PARQ
+from parq_train import loss, train
+from parq_train.data import Snippet
+
+from conftest import tiny_config
+
+
+def test_matching_hungarian_plus_proximity():
+    reference = torch.tensor([[0.0, 0, 1], [0.05, 0, 1], [2, 0, 1], [0.5, 0, 3]])
+    prob = torch.full((4, 10), 0.1)
+    centers = torch.tensor([[0.0, 0, 1], [2, 0.1, 1]])
+    labels = torch.tensor([0, 1])
+    q, t = loss.match(reference, prob, centers, labels)
+    pairs = sorted(zip(q.tolist(), t.tolist()))
+    # Hungarian: 0 -> 0, 2 -> 1; proximity (L1 < 0.2): query 1 -> 0 too; query 3 is far
+    assert pairs == [(0, 0), (1, 0), (2, 1)]
+
+
+def test_rotation_loss_respects_symmetry():
+    c, s = math.cos(math.pi), math.sin(math.pi)
+    half_turn = torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float32)
+    target = torch.eye(3)[None]
+    pred = half_turn[None]
+    assert loss.rotation_loss(pred, target, torch.tensor([2])) < 1e-10
+    assert loss.rotation_loss(pred, target, torch.tensor([1])) > 0.5
+    assert loss.rotation_loss(pred, target, torch.tensor([36])) < 1e-10
+
+
+def test_norm_swap_round_trip_keeps_the_function():
+    model = PARQ(tiny_config())
+    x = torch.rand(2, 3, 48, 64)
+    with torch.no_grad():
+        for m in model.modules():
+            if hasattr(m, "running_var"):
+                m.running_var.uniform_(0.5, 2.0)
+                m.running_mean.normal_()
+        before = model.backbone(x)
+        trainable = train.swap_norms(model, to_trainable=True).eval()
+        assert any(isinstance(m, torch.nn.BatchNorm2d) for m in trainable.modules())
+        middle = trainable.backbone(x)
+        after = train.swap_norms(trainable, to_trainable=False).backbone(x)
+    torch.testing.assert_close(middle, before)
+    torch.testing.assert_close(after, before)
+    assert set(PARQ(tiny_config()).state_dict()) == set(model.state_dict())
+
+
+def test_loss_goes_down_on_a_tiny_set():
+    config = tiny_config(num_queries=16)
+    rng = np.random.default_rng(0)
+    snippets = []
+    for _ in range(2):
+        camera, T_local_camera = verify.random_snippet(rng, 3, config)
+        w, h = config.image_size
+        snippets.append(Snippet(
+            "s", rng.integers(0, 256, (3, h, w, 3), dtype=np.uint8), camera, T_local_camera,
+            np.array([0, 4]), np.array([[0.3, -1.0, 2.0], [-0.5, -0.8, 3.0]], np.float32),
+            np.array([[0.5, 0.8, 0.6], [1.0, 1.3, 0.3]], np.float32),
+            np.stack([np.eye(3, dtype=np.float32)] * 2)))
+    _, history = train.train(config, snippets, steps=60, seed=0, folds_of_class=[1] * 9,
+                             batch_size=2, iterations=2, lr=2e-3, log=lambda *_: None,
+                             log_every=10)
+    first, last = history[0]["total"], history[-1]["total"]
+    assert last < 0.6 * first, history
