@@ -8,6 +8,7 @@
 """
 from __future__ import annotations
 
+import collections
 import numbers
 import time
 from dataclasses import dataclass, field
@@ -80,10 +81,7 @@ class Detector:
         queries = _check_count(queries, "queries", 1, self.card.max_queries)
         return query_points.reference_points(self.card.reference_points, queries)
 
-    def prepare(self, images, intrinsics, cam_to_world, up=geometry.UP_Z):
-        """Resize frames and compute the snippet geometry: returns (images (N, h, w, 3) uint8,
-        camera (N, 4) at feature resolution, T_world_local, T_local_camera (N, 4, 4))."""
-        images = list(images)
+    def _check_snippet(self, images, intrinsics, cam_to_world) -> tuple:
         N = len(images)
         if not 1 <= N <= self.card.max_views:
             raise ParqError(f"a snippet needs 1 to {self.card.max_views} views, got {N}")
@@ -97,37 +95,52 @@ class Detector:
             K = np.repeat(K[None], N, 0)
         if K.shape != (N, 3, 3):
             raise ParqError(f"intrinsics must be 3x3 or ({N}, 3, 3), got {K.shape}")
-        resized, K_net = [], []
-        for i, (image, K_i) in enumerate(zip(images, K)):
-            try:
-                img, K_i = preprocess.prepare(image, K_i, self.card.image_size)
-            except ParqError as e:
-                raise ParqError(f"view {i}: {e}") from None
-            resized.append(img)
-            K_net.append(K_i)
-        camera = geometry.scale_camera(geometry.pinhole(np.stack(K_net)),
+        return T_world_camera, K
+
+    def _prepare_view(self, i, image, K):
+        try:
+            return preprocess.prepare(image, K, self.card.image_size)
+        except ParqError as e:
+            raise ParqError(f"view {i}: {e}") from None
+
+    def prepare(self, images, intrinsics, cam_to_world, up=geometry.UP_Z):
+        """Resize frames and compute the snippet geometry: returns (images (N, h, w, 3) uint8,
+        camera (N, 4) at feature resolution, T_world_local, T_local_camera (N, 4, 4))."""
+        images = list(images)
+        T_world_camera, K = self._check_snippet(images, intrinsics, cam_to_world)
+        views = [self._prepare_view(i, image, K_i) for i, (image, K_i) in enumerate(zip(images, K))]
+        camera = geometry.scale_camera(geometry.pinhole(np.stack([v[1] for v in views])),
                                        1.0 / self.card.feature_stride)
         T_world_local = geometry.snippet_frame(T_world_camera, up)
         T_local_camera = geometry.invert(T_world_local) @ T_world_camera
-        return np.stack(resized), camera, T_world_local, T_local_camera
+        return np.stack([v[0] for v in views]), camera, T_world_local, T_local_camera
 
-    def encode(self, images, camera, T_local_camera, cached: bool):
-        """Run backbone.onnx; returns (memory (N, h, w, C), attention operands dict)."""
+    def encode(self, images, camera, T_local_camera, cached: bool, cached_features=None):
+        """Run backbone.onnx on new frames (Nn, h, w, 3) after ``cached_features`` (Nc, C, h',
+        w') of frames encoded before; camera and T_local_camera list the Nc + Nn views in that
+        order.  Returns (memory (N, h', w', C), attention operands, features of the new frames
+        (Nn, C, h', w'))."""
         C = self.card.feature_dim
         fw, fh = self.card.feature_size
+        if cached_features is None:
+            cached_features = np.zeros((0, C, fh, fw), np.float32)
+        if len(images) == 0:
+            w, h = self.card.image_size
+            images = np.zeros((0, h, w, 3), np.uint8)
         outputs = [o.name for o in self.backbone.get_outputs()]
         result = dict(zip(outputs, self.backbone.run(None, {
-            "images": images,
-            "cached_features": np.zeros((0, C, fh, fw), np.float32),
+            "images": np.ascontiguousarray(images),
+            "cached_features": np.ascontiguousarray(cached_features, dtype=np.float32),
             "camera": camera.astype(np.float32),
             "T_local_camera": T_local_camera.astype(np.float32),
             "key_value": np.array(cached)})))
         operands = {k: result[k] for k in loop.OPERAND_NAMES}
-        return result["memory"], operands
+        return result["memory"], operands, result["features"]
 
     def detect(self, images, intrinsics, cam_to_world, iters: int = 2, queries: int = 32,
                score_threshold: float | None = None, region: bool = True,
-               form: str = "auto", up=geometry.UP_Z) -> DetectionResult:
+               form: str = "auto", up=geometry.UP_Z, frame_keys=None,
+               cache: "FeatureCache | None" = None) -> DetectionResult:
         """Detect objects in one snippet.
 
         images: N RGB uint8 arrays (H, W, 3), any size; intrinsics: 3x3 for all views or
@@ -135,7 +148,13 @@ class Detector:
         ``up`` (z by default).  iters: recurrent iterations >= 1; queries: reference points
         (see parq_runtime.queries).  score_threshold: default from the model card; region:
         keep only centers inside the authors' evaluation region; form: attention form
-        (``auto`` picks the cheaper of ``cached`` and ``folded``; both are exact)."""
+        (``auto`` picks the cheaper of ``cached`` and ``folded``; both are exact).
+
+        Streaming: with ``frame_keys`` (one hashable per view) and a :class:`FeatureCache`, the
+        image encoder runs only for frames not in the cache (their ``images`` entry may be None
+        when cached); every snippet still gets its own ray encoding.  The views are then
+        encoded in the order [cached..., new...]; results do not depend on view order beyond
+        float rounding."""
         iters = _check_count(iters, "iters", 1, MAX_ITERATIONS)
         reference = self.reference_points(queries)
         if form not in FORMS:
@@ -145,8 +164,20 @@ class Detector:
             raise ParqError(f"score threshold {threshold}: must be in [0, 1)")
         timings = {}
         start = time.perf_counter()
-        images, camera, T_world_local, T_local_camera = self.prepare(images, intrinsics,
-                                                                     cam_to_world, up)
+        images = list(images)
+        T_world_camera, K = self._check_snippet(images, intrinsics, cam_to_world)
+        keys = list(frame_keys) if frame_keys is not None else [None] * len(images)
+        if len(keys) != len(images):
+            raise ParqError(f"{len(keys)} frame keys for {len(images)} images")
+        hit = [cache is not None and k is not None and k in cache for k in keys]
+        old = [i for i in range(len(images)) if hit[i]]
+        new = [i for i in range(len(images)) if not hit[i]]
+        order = old + new
+        prepared = {i: self._prepare_view(i, images[i], K[i]) for i in new}
+        K_net = np.stack([cache.get(keys[i])[1] if hit[i] else prepared[i][1] for i in order])
+        camera = geometry.scale_camera(geometry.pinhole(K_net), 1.0 / self.card.feature_stride)
+        T_world_local = geometry.snippet_frame(T_world_camera, up)
+        T_local_camera = geometry.invert(T_world_local) @ T_world_camera[order]
         T_camera_local = geometry.invert(T_local_camera)
         timings["preprocess"] = time.perf_counter() - start
         fw, fh = self.card.feature_size
@@ -154,7 +185,14 @@ class Detector:
             form = choose_form(len(images), fw * fh, self.card.feature_dim, self.card.heads,
                                len(reference), iters)
         start = time.perf_counter()
-        memory, operands = self.encode(images, camera, T_local_camera, form == "cached")
+        memory, operands, features = self.encode(
+            np.stack([prepared[i][0] for i in new]) if new else [], camera, T_local_camera,
+            form == "cached",
+            np.stack([cache.get(keys[i])[0] for i in old]) if old else None)
+        if cache is not None:
+            for j, i in enumerate(new):
+                if keys[i] is not None:
+                    cache.put(keys[i], (features[j], prepared[i][1]))
         timings["backbone"] = time.perf_counter() - start
         timings["iterations"] = []
         iterations = loop.run(self.layer, memory, operands, camera, T_camera_local, reference,
@@ -165,3 +203,25 @@ class Detector:
             self.card.eval_region if region else None, up)
         timings["postprocess"] = time.perf_counter() - start
         return DetectionResult(found, iterations, T_world_local, form, timings)
+
+
+class FeatureCache:
+    """Image features of the last ``capacity`` frames, keyed by frame, for streaming: a frame
+    shared by overlapping snippets goes through the image encoder once."""
+
+    def __init__(self, capacity: int):
+        self.capacity = int(capacity)
+        self.entries = collections.OrderedDict()
+
+    def __contains__(self, key) -> bool:
+        return key in self.entries
+
+    def get(self, key):
+        self.entries.move_to_end(key)
+        return self.entries[key]
+
+    def put(self, key, value) -> None:
+        self.entries[key] = value
+        self.entries.move_to_end(key)
+        while len(self.entries) > self.capacity:
+            self.entries.popitem(last=False)

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import keyframes
+from .detector import FeatureCache
 from .fusion import SceneFusion
 from .readers import Capture
 
@@ -63,15 +64,20 @@ def run(detector, capture: Capture, settings: RunSettings, progress=None) -> Sce
     keys, snippets = plan(capture, settings)
     result = SceneResult(capture, [capture.frames[i].name for i in keys],
                          fusion=SceneFusion(up=capture.up))
+    # Overlapping windows share frames: their image features are computed once (streaming).
+    cache = FeatureCache(settings.views) if (settings.stride or settings.views) < \
+        settings.views else None
     for n, indices in enumerate(snippets):
         t = time.perf_counter()
         frames = [capture.frames[i] for i in indices]
-        found = detector.detect([f.load_image() for f in frames],
+        found = detector.detect([None if cache is not None and i in cache else f.load_image()
+                                 for i, f in zip(indices, frames)],
                                 np.stack([f.intrinsics for f in frames]),
                                 np.stack([f.cam_to_world for f in frames]),
                                 iters=settings.iters, queries=settings.queries,
                                 score_threshold=settings.score_threshold,
-                                region=settings.region, form=settings.form, up=capture.up)
+                                region=settings.region, form=settings.form, up=capture.up,
+                                frame_keys=indices, cache=cache)
         result.fusion.add(found.boxes, n)
         result.snippets.append(SnippetResult(n, [f.name for f in frames], found.T_world_local,
                                              found.boxes, found.form, time.perf_counter() - t))
