@@ -9,7 +9,7 @@ from __future__ import annotations
 # Read off parq_synth.shapes: tables and bathtubs are symmetric front-to-back and left-to-right
 # (2 folds), trash bins are round; chairs, sofas, bookshelves, cabinets and displays have a
 # front; "other" is a plain box or cylinder, taken as 2-fold.
-FOLDS = {"chair": 1, "table": 2, "cabinet": 1, "trash bin": 36, "bookshelf": 1, "display": 1,
+FOLDS = {"chair": 1, "table": 2, "cabinet": 1, "trash bin": 2, "bookshelf": 1, "display": 1,
          "sofa": 1, "bathtub": 2, "other": 2}
 
 
