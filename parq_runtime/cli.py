@@ -32,13 +32,41 @@ def non_negative_float(text: str) -> float:
     return value
 
 
+def score(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"{value} must be at least 0 and below 1")
+    return value
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        # one line, like every other parq-run error (argparse would print the usage first)
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    from .gravity import CHOICES
+    from .readers import FORMATS
+
+    p = _Parser(
         prog="parq-run",
         description="Detect 3D boxes in a folder of posed RGB frames with an exported PARQ "
                     "model: keyframes -> snippets -> detections -> scene fusion, as JSON.")
     p.add_argument("frames", type=pathlib.Path,
-                   help="capture folder (ScanNet layout: color/, pose/, intrinsic/)")
+                   help="capture folder: a ScanNet export (color/, pose/, intrinsic/), "
+                        "ARKitScenes raw (lowres_wide/, lowres_wide.traj), the demo's "
+                        "fragments.pkl + images/, a nerfstudio transforms.json or a COLMAP "
+                        "text model (see docs/readers.md)")
+    p.add_argument("--format", choices=FORMATS, default=None,
+                   help="read the folder as this layout (default: detected from its files)")
+    p.add_argument("--up", choices=CHOICES, default=None,
+                   help="the world's up axis (default: the format's convention, +z for "
+                        "ScanNet, ARKitScenes and the demo layout; estimated from the cameras "
+                        "for COLMAP and nerfstudio); auto estimates it from the cameras")
     p.add_argument("--model", type=pathlib.Path,
                    default=pathlib.Path(os.environ.get("PARQ_MODEL", DEFAULT_MODEL)),
                    help="model folder written by parq-export (default: $PARQ_MODEL or "
@@ -52,7 +80,7 @@ def parser() -> argparse.ArgumentParser:
                    help="keyframes per snippet (default 3, as the authors train)")
     p.add_argument("--stride", type=positive_int, default=None,
                    help="keyframes between snippet starts (default: --views, no overlap)")
-    p.add_argument("--score-threshold", type=non_negative_float, default=None,
+    p.add_argument("--score-threshold", type=score, default=None,
                    help="keep boxes scoring above this (default: the model card's, 0.8 for "
                         "the authors' checkpoints)")
     p.add_argument("--all-regions", action="store_true",
@@ -73,8 +101,15 @@ def parser() -> argparse.ArgumentParser:
                         "CUDAExecutionProvider (default: CPU)")
     p.add_argument("-o", "--output", type=pathlib.Path, default=None,
                    help="write the JSON here (written whole or not at all) instead of stdout")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress or summary on "
-                   "stderr")
+    p.add_argument("--vis", type=pathlib.Path, default=None, metavar="DIR",
+                   help="also draw each snippet's boxes (solid, labelled) and the fused scene "
+                        "boxes (dashed) on its keyframes, as PNGs in this folder (written "
+                        "whole or not at all; an earlier --vis folder is replaced)")
+    p.add_argument("--ply", type=pathlib.Path, default=None, metavar="FILE",
+                   help="also write the scene boxes as coloured wireframes (PLY, world frame) "
+                        "for MeshLab, Open3D or CloudCompare")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress, notes or summary "
+                   "on stderr (warnings are still printed)")
     return p
 
 
@@ -101,14 +136,35 @@ class Progress:
         self.last = tenth
 
 
-def run(args) -> int:
-    from . import files, readers, results, scene
-    from .detector import Detector
+def check_outputs(args) -> None:
+    from . import files, visualize
 
-    if args.output is not None:
-        files.check_writable(args.output)
-    capture = readers.open_capture(args.frames)
+    paths = [p for p in (args.output, args.ply) if p is not None]
+    for path in paths:
+        files.check_writable(path)
+    if len(paths) == 2 and paths[0].absolute() == paths[1].absolute():
+        raise ParqError(f"{paths[0]}: given for both -o and --ply")
+    if args.vis is not None:
+        visualize.check_output(args.vis)
+        for path in paths:
+            if args.vis.absolute() == path.absolute():
+                raise ParqError(f"{path}: given for both --vis and a file output")
+
+
+def run(args) -> int:
+    from . import files, ply, readers, results, scene, visualize
+    from .detector import MAX_ITERATIONS, Detector
+
+    if args.iters > MAX_ITERATIONS:
+        raise ParqError(f"--iters {args.iters}: at most {MAX_ITERATIONS}")
+    check_outputs(args)
+    capture = readers.open_capture(args.frames, args.format, args.up)
+    for warning in capture.warnings:
+        print(f"parq-run: warning: {warning}", file=sys.stderr)
     detector = Detector(args.model, providers=args.providers, threads=args.threads)
+    if args.views > detector.card.max_views:
+        raise ParqError(f"--views {args.views}: this model takes at most "
+                        f"{detector.card.max_views} views per snippet")
     settings = scene.RunSettings(
         iters=args.iters, queries=args.queries, views=args.views, stride=args.stride,
         score_threshold=args.score_threshold, region=not args.all_regions, form=args.form,
@@ -119,20 +175,25 @@ def run(args) -> int:
     if not snippets:
         raise ParqError(f"{args.frames}: {len(capture.frames)} frames give {len(keys)} "
                         f"keyframes, fewer than one snippet of {args.views} views")
-    for note in capture.notes:
-        if not args.quiet:
-            print(f"parq-run: note: {note}", file=sys.stderr)
+    used = sorted({i for snippet in snippets for i in snippet})
+    readers.check_headers(capture.frames[i] for i in used)   # fail before the long part
     result = scene.run(detector, capture, settings, Progress(not args.quiet))
     threshold = detector.card.score_threshold if args.score_threshold is None \
         else args.score_threshold
     text = json.dumps(results.to_json(result, settings, detector.card, threshold), indent=1)
+    images = visualize.write(result, args.vis) if args.vis is not None else 0
+    if args.ply is not None:
+        ply.write(args.ply, result.fusion.boxes)
     if args.output is None:
         sys.stdout.write(text + "\n")
     else:
         files.atomic_write(args.output, text + "\n")
     if not args.quiet:
+        for note in capture.notes:      # after the run: an error stays a single line
+            print(f"parq-run: note: {note}", file=sys.stderr)
+        extra = f", {images} images in {args.vis}" if args.vis is not None else ""
         print(f"parq-run: {len(result.snippets)} snippets, {len(result.fusion.boxes)} scene "
-              f"boxes, {result.seconds:.1f} s", file=sys.stderr)
+              f"boxes, {result.seconds:.1f} s{extra}", file=sys.stderr)
     return 0
 
 

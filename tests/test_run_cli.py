@@ -172,3 +172,104 @@ def test_help_describes_every_flag():
     for action in cli.parser()._actions:
         assert action.help, action.dest
     assert "--iters" in text and "--queries" in text
+
+
+# ------------------------------------------------------------------------ formats, --vis, --ply
+
+def run_main(capsys, *args):
+    """parq-run in this process (faster than a subprocess; a traceback would fail the test)."""
+    try:
+        code = cli.main([str(a) for a in args])
+    except SystemExit as e:         # argparse
+        code = e.code
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_colmap_capture_with_vis_and_ply(tiny_model, tmp_path):
+    from test_formats import COLMAP_WORLD, write_colmap
+    from test_visualize import parse_ply
+
+    folder = write_colmap(write_scannet(tmp_path / "scene", frames=9), tmp_path / "colmap",
+                          COLMAP_WORLD)
+    out, ply_path, vis = tmp_path / "out.json", tmp_path / "boxes.ply", tmp_path / "vis"
+    code, stdout, stderr = run_cli(folder, "--model", tiny_model, "--score-threshold", 0,
+                                   "--all-regions", "--queries", 8, "-o", out, "--ply",
+                                   ply_path, "--vis", vis)
+    assert code == 0, stderr
+    assert "note: up -y estimated from 9 cameras" in stderr and "warning" not in stderr
+    data = json.loads(out.read_text())
+    assert data["capture"]["format"] == "colmap" and data["capture"]["up"] == [0, -1, 0]
+    boxes = data["scene"]["boxes"]
+    parsed = parse_ply(ply_path.read_text())
+    assert len(parsed["vertex"]) == 8 * len(boxes) and len(parsed["edge"]) == 12 * len(boxes)
+    index = json.loads((vis / "index.json").read_text())
+    assert len(index["images"]) == 3 * len(data["snippets"]) == 9
+    assert all((vis / i["file"]).is_file() for i in index["images"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["boxes.ply", "colmap", "out.json",
+                                                          "scene", "vis"]
+
+
+def test_bad_input_in_every_format(tiny_model, tmp_path, capsys):
+    from test_formats import write_arkit, write_colmap, write_demo, write_nerfstudio
+
+    scene = write_scannet(tmp_path / "scene", frames=6)
+    outputs = [tmp_path / "o.json", tmp_path / "o.ply", tmp_path / "vis"]
+    flags = ["-o", outputs[0], "--ply", outputs[1], "--vis", outputs[2], "--model", tiny_model,
+             "--threads", 1]
+
+    def fails(folder, *needles, extra=()):
+        _one_line_error(*run_main(capsys, folder, *flags, *extra), *needles)
+        assert not any(p.exists() for p in outputs)
+        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no debris
+
+    f = write_nerfstudio(scene, tmp_path / "ns")
+    (f / "images" / "frame_00003.png").unlink()
+    fails(f, "frame_00003.png: image not found")
+    meta = json.loads((f / "transforms.json").read_text())
+    (f / "transforms.json").write_text(json.dumps(dict(meta, frames=[])))
+    fails(f, "transforms.json", "empty")
+
+    f = write_colmap(scene, tmp_path / "colmap")
+    cams = f / "sparse" / "0" / "cameras.txt"
+    cams.write_text(cams.read_text().replace("96 72", "32 24"))
+    fails(f, "cameras.txt", "outside")              # principal point outside the stated size
+    for p in (f / "sparse" / "0").iterdir():
+        p.rename(p.with_suffix(".bin"))
+    fails(f, "model_converter")
+
+    f = write_arkit(scene, tmp_path / "arkit")
+    traj = f / "lowres_wide.traj"
+    traj.write_text(traj.read_text().replace("6000.502", "6000.502 nan", 1))
+    fails(f, "lowres_wide.traj:", "expected 7 numbers")
+    f = write_arkit(scene, tmp_path / "arkit2")
+    pincam = next((f / "lowres_wide_intrinsics").iterdir())
+    pincam.write_text(pincam.read_text().replace("96.0 72.0", "128.0 96.0"))
+    fails(f, pincam.stem + ".png", "image is 96x72", "state 128x96")
+
+    marker = tmp_path / "pwned"
+    f = write_demo(scene, tmp_path / "demo")
+    exploit = b"cos\nsystem\n(V" + f"touch {marker}".encode() + b"\ntR."
+    (f / "fragments.pkl").write_bytes(exploit)
+    fails(f, "fragments.pkl", "refuses to load os.system")
+    assert not marker.exists()
+
+    fails(scene, "COLMAP layout needs", extra=["--format", "colmap"])
+    fails(scene, "--up", "invalid choice", extra=["--up", "sideways"])
+    fails(scene, "--views 50", extra=["--views", 50])
+    fails(scene, "--iters 5000", extra=["--iters", 5000])
+    fails(scene, "--score-threshold", extra=["--score-threshold", 1.5])
+    foreign = tmp_path / "photos"
+    foreign.mkdir()
+    (foreign / "a.jpg").write_bytes(b"x")
+    _one_line_error(*run_main(capsys, scene, "--model", tiny_model, "--vis", foreign),
+                    "not an earlier --vis output")
+    assert [p.name for p in foreign.iterdir()] == ["a.jpg"]
+    for args, needle in ((["--ply", tmp_path / "no" / "x.ply"], "does not exist"),
+                         (["--vis", tmp_path / "no" / "vis"], "does not exist"),
+                         (["--ply", scene], "is a folder"),
+                         (["-o", tmp_path / "same", "--ply", tmp_path / "same"], "both")):
+        _one_line_error(*run_main(capsys, scene, "--model", tiny_model, *args), needle)
+    # a corrupt frame found while detecting: no output of any kind
+    (scene / "color" / "4.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")
+    fails(scene, "4.png", "not a readable image")

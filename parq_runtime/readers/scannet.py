@@ -7,6 +7,11 @@
 ScanNet marks frames where tracking was lost with poses full of -inf; those frames are skipped
 (the authors' preprocessing skips them too) and counted in ``Capture.notes``.  Any other bad
 pose (NaN, a matrix that is not rigid) is an error naming the file.
+
+Pixel convention: ScanNet's intrinsics put pixel centres at integer coordinates (the authors'
+and SensReader's use), the runtime's convention, so K is used as stored.  One intrinsics file
+serves every frame and states no image size: all colour frames must have the size of the first
+one loaded (checked as images load; a frame of another size is an error naming it).
 """
 from __future__ import annotations
 
@@ -17,10 +22,13 @@ import numpy as np
 
 from .. import geometry
 from ..errors import ParqError
-from . import Capture, Frame, read_matrix
+from . import Capture, Frame, SizeGroup, read_matrix
 
 COLOR = re.compile(r"^(?:frame-)?(\d+)(?:\.color)?\.(jpg|jpeg|png)$", re.IGNORECASE)
 POSE = re.compile(r"^(?:frame-)?(\d+)(?:\.pose)?\.txt$")
+
+
+UP = geometry.UP_Z
 
 
 def looks_like(path: pathlib.Path) -> bool:
@@ -69,13 +77,16 @@ def read(path: pathlib.Path) -> Capture:
         raise ParqError(f"{path / 'color'}: no colour frame for {len(no_color)} pose(s), "
                         f"first {poses[no_color[0]].name}")
     frames, lost = [], 0
+    source = str(intrinsic)
+    group = SizeGroup(source)
     for i in sorted(colors):
         T = read_matrix(poses[i], (4, 4), "pose")
         if np.all(np.isinf(T[:3])):
             lost += 1
             continue
         geometry.check_rigid(T, str(poses[i]))
-        frames.append(Frame(str(i), colors[i], T, K.copy()))
+        frames.append(Frame(str(i), colors[i], T, K.copy(), source=source,
+                            size_group=group))
     capture = Capture(path, "scannet", frames, geometry.UP_Z)
     if lost:
         capture.notes.append(f"skipped {lost} frame(s) whose pose is marked invalid (-inf)")
