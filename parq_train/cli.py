@@ -47,11 +47,15 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--scenes", type=int, default=240,
                    help="training scenes to generate (default 240)")
     p.add_argument("--frames", type=int, default=60, help="frames per scene (default 60)")
-    p.add_argument("--steps", type=int, default=16000, help="optimiser steps (default 16000)")
+    p.add_argument("--pretrain-steps", type=int, default=8000,
+                   help="backbone pretraining steps on depth and object classes, the stand-in "
+                        "for ImageNet weights (default 8000; 0 skips it)")
+    p.add_argument("--steps", type=int, default=16000,
+                   help="PARQ training steps with the paper's objective (default 16000)")
     p.add_argument("--batch", type=int, default=4, help="snippets per step (default 4)")
     p.add_argument("--iterations", type=int, default=4,
                    help="recurrent iterations supervised per step (default 4)")
-    p.add_argument("--lr", type=float, default=4e-4, help="peak learning rate (default 4e-4)")
+    p.add_argument("--lr", type=float, default=5e-4, help="peak learning rate (default 5e-4)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     return p
 
@@ -71,12 +75,14 @@ def run(args, argv) -> int:
     from parq_export import checkpoint
     from parq_synth import generate
 
-    from . import data, train
+    from . import data, pretrain, train
     from .symmetry import folds_of_class
 
     for name in ("scenes", "frames", "steps", "batch", "iterations"):
         if getattr(args, name) < 1:
             raise ParqError(f"--{name} must be at least 1")
+    if args.pretrain_steps < 0:
+        raise ParqError("--pretrain-steps must not be negative")
     if args.threads:
         torch.set_num_threads(args.threads)
     config = demo_config(iterations=args.iterations)
@@ -86,25 +92,34 @@ def run(args, argv) -> int:
         generate(args.data, args.scenes, TRAIN_SEED, frames=args.frames,
                  size=tuple(config.image_size))
     generated = time.perf_counter() - start
-    snippets = data.load_scenes(args.data, config, log=lambda m: print(m, file=sys.stderr))
+    log = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
+    snippets = data.load_scenes(args.data, config, log=log)
+    model = train.new_model(config, args.seed, snippets)
+    folders = sorted(p.parent for p in args.data.glob("*/boxes.json"))
+    pre_history = pretrain.pretrain(model.backbone, config, folders, args.pretrain_steps,
+                                    args.seed, log=log, log_every=500) \
+        if args.pretrain_steps else []
+    pretrained = time.perf_counter() - start - generated
     model, history = train.train(config, snippets, args.steps, args.seed,
                                  folds_of_class(config.classes), batch_size=args.batch,
-                                 iterations=args.iterations, lr=args.lr,
-                                 log=lambda m: print(m, file=sys.stderr, flush=True))
-    trained = time.perf_counter() - start - generated
+                                 iterations=args.iterations, lr=args.lr, log=log,
+                                 log_every=250, model=model)
+    trained = time.perf_counter() - start - generated - pretrained
     record = {"command": "parq-train " + " ".join(argv), "seed": args.seed,
               "data": {"generator": "parq-synth", "seed": TRAIN_SEED, "scenes": args.scenes,
                        "frames": args.frames, "folder": str(args.data),
                        "snippets": len(snippets)},
-              "steps": args.steps, "batch": args.batch, "iterations": args.iterations,
+              "pretrain_steps": args.pretrain_steps, "steps": args.steps, "batch": args.batch, "iterations": args.iterations,
               "lr": args.lr, "threads": torch.get_num_threads(),
-              "minutes": {"generate": round(generated / 60, 1), "train": round(trained / 60, 1)},
+              "minutes": {"generate": round(generated / 60, 1),
+                          "pretrain": round(pretrained / 60, 1), "train": round(trained / 60, 1)},
               "finished": datetime.datetime.now(datetime.timezone.utc)
               .isoformat(timespec="seconds"),
               "torch": torch.__version__, "cpu_count": os.cpu_count(),
               "final_loss": history[-1] if history else None}
     model.config = model.config.replace(extra={"training": record})
-    checkpoint.save(args.output, model, {"training": record, "history": history})
+    checkpoint.save(args.output, model, {"training": record, "history": history,
+                                         "pretrain_history": pre_history})
     print(json.dumps(record, indent=1), file=sys.stderr)
     return 0
 

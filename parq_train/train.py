@@ -40,10 +40,24 @@ def swap_norms(module: nn.Module, to_trainable: bool) -> nn.Module:
     return module
 
 
-def init_reference_points(model: PARQ, generator: torch.Generator) -> None:
-    """Learned reference points start uniform in the decoder box (in logit space)."""
+def init_reference_points(model: PARQ, generator: torch.Generator, snippets=None) -> None:
+    """Learned reference points start at k-means centres of the training targets' centers in
+    the local frame (anchors where objects are), or uniform in the decoder box without data."""
+    from scipy.cluster.vq import kmeans2
+
+    from parq_runtime.loop import normalize
+
+    K = model.refpoint.weight.shape[0]
+    u = torch.rand(model.refpoint.weight.shape, generator=generator) * 0.9 + 0.05
+    if snippets:
+        centers = normalize(np.concatenate([s.centers for s in snippets]),
+                            model.config.decoder_scale)
+        centers = centers[np.all((centers > 0.02) & (centers < 0.98), -1)]
+        if len(centers) >= K:
+            seed = int(torch.randint(0, 2 ** 31 - 1, (1,), generator=generator))
+            anchors, _ = kmeans2(centers, K, minit="++", seed=seed)
+            u = torch.from_numpy(np.clip(anchors, 0.02, 0.98)).float()
     with torch.no_grad():
-        u = torch.rand(model.refpoint.weight.shape, generator=generator) * 0.9 + 0.05
         model.refpoint.weight.copy_(torch.log(u / (1 - u)))
 
 
@@ -71,14 +85,24 @@ def learning_rate(step: int, steps: int, peak: float, warmup: int) -> float:
     return peak * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
-def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_size: int = 4,
-          lr: float = 4e-4, iterations: int = 4, log=print, log_every: int = 50) -> tuple:
-    """Train a PARQ on the snippets; returns (model with frozen norms, history)."""
+def new_model(config, seed: int, snippets=None) -> PARQ:
+    """A PARQ with trainable batch norms and reference points at the targets' k-means
+    centres (see init_reference_points)."""
     torch.manual_seed(seed)
-    generator = torch.Generator().manual_seed(seed)
-    rng = np.random.default_rng(seed)
     model = swap_norms(PARQ(config), to_trainable=True)
-    init_reference_points(model, generator)
+    init_reference_points(model, torch.Generator().manual_seed(seed), snippets)
+    return model
+
+
+def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_size: int = 4,
+          lr: float = 4e-4, iterations: int = 4, log=print, log_every: int = 50,
+          model: PARQ | None = None) -> tuple:
+    """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
+    or a fresh one) on the snippets; returns (model with frozen norms, history)."""
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    if model is None:
+        model = new_model(config, seed, snippets)
     model.train()
     decay, no_decay = [], []
     for name, p in model.named_parameters():

@@ -1,0 +1,115 @@
+"""Shared helpers of the benchmark scripts: the official-configuration model (seeded weights,
+exported once into benchmarks/.cache), inputs, timing statistics and machine description."""
+from __future__ import annotations
+
+import os
+import pathlib
+import platform
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+HERE = pathlib.Path(__file__).resolve().parent
+ROOT = HERE.parent
+CACHE = HERE / ".cache"
+RESULTS = HERE / "results"
+GOLDEN = ROOT / "tests" / "golden"
+
+
+def official_checkpoint() -> pathlib.Path:
+    """The authors' architecture with seeded weights (tests/golden/make_official_ckpt.py)."""
+    CACHE.mkdir(exist_ok=True)
+    path = CACHE / "official.ckpt"
+    if not path.exists():
+        subprocess.run([sys.executable, str(GOLDEN / "make_official_ckpt.py"), str(path),
+                        "--seed", "0"], check=True)
+    return path
+
+
+def official_model() -> pathlib.Path:
+    from parq_export.export import export
+
+    out = CACHE / "official_model"
+    if not (out / "model.json").exists():
+        export(official_checkpoint(), out, overwrite=True, log=lambda *_: None)
+    return out
+
+
+def golden_snippet(size=(1296, 968)):
+    """The golden case's three views, upscaled to ScanNet's colour size so that the
+    preprocessing does what it does on real frames; intrinsics scaled to match."""
+    from PIL import Image
+
+    expected = np.load(GOLDEN / "official-case" / "expected.npz")
+    images, w0, h0 = [], 320, 240
+    for i in range(3):
+        im = Image.open(GOLDEN / "official-case" / f"{i}.png").convert("RGB")
+        w0, h0 = im.size
+        images.append(np.asarray(im.resize(size, Image.BILINEAR)))
+    K = expected["intrinsics"].copy()
+    K[0] *= size[0] / w0
+    K[1] *= size[1] / h0
+    return images, K, expected["cam_to_world"]
+
+
+def stats(values) -> dict:
+    v = sorted(values)
+    q = statistics.quantiles(v, n=4) if len(v) >= 2 else [v[0]] * 3
+    return {"median": statistics.median(v), "p25": q[0], "p75": q[2], "min": v[0],
+            "max": v[-1], "n": len(v)}
+
+
+def machine() -> dict:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    flags = ""
+    try:
+        flags = next(l for l in open("/proc/cpuinfo") if l.startswith("flags"))
+    except (OSError, StopIteration):
+        pass
+    isa = [f for f in ("avx2", "avx512f", "avx512_vnni", "amx_tile") if f" {f}" in flags]
+    import onnxruntime
+    import torch
+    return {"cpu": cpu, "cores": os.cpu_count(), "isa": isa, "python": platform.python_version(),
+            "onnxruntime": onnxruntime.__version__, "torch": torch.__version__}
+
+
+def matmul_peak(threads: int, n: int = 2048, runs: int = 7) -> float:
+    """fp32 GFLOP/s of an n x n x n product in onnxruntime (MLAS, the kernels the graphs use),
+    median of ``runs`` after a warm-up."""
+    import onnx
+    import onnxruntime as ort
+    from onnx import TensorProto, helper
+
+    a = helper.make_tensor_value_info("a", TensorProto.FLOAT, [n, n])
+    b = helper.make_tensor_value_info("b", TensorProto.FLOAT, [n, n])
+    c = helper.make_tensor_value_info("c", TensorProto.FLOAT, [n, n])
+    graph = helper.make_graph([helper.make_node("MatMul", ["a", "b"], ["c"])], "mm", [a, b],
+                              [c])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    session = ort.InferenceSession(model.SerializeToString(), options,
+                                   providers=["CPUExecutionProvider"])
+    x = np.random.default_rng(0).standard_normal((n, n), dtype=np.float32)
+    session.run(None, {"a": x, "b": x})
+    times = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        session.run(None, {"a": x, "b": x})
+        times.append(time.perf_counter() - t)
+    return 2 * n ** 3 / statistics.median(times) / 1e9
+
+
+def peak_rss_mb() -> float:
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -1,0 +1,130 @@
+"""Accuracy and latency as compute changes: the demo model on held-out generated scenes.
+
+Generates --scenes scenes with parq-synth seed 3000 (training used seed 1000, validation 2000,
+so no scene is shared), runs parq-run's pipeline (keyframes, 3-view snippets, scene fusion) at
+iterations 1, 2, 4, 8 x queries 16, 32, 64, 128 and the learned count, and reports scene-level
+F1 at IoU 0.25 / 0.5 / 0.7 (parq-eval's protocol, pooled over scenes) and the median latency per
+snippet.  Writes results/tradeoff.{md,csv,json,png}.
+
+    python benchmarks/tradeoff.py [--model models/parq-demo] [--scenes 40]
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import pathlib
+import statistics
+import sys
+
+import common
+
+HELD_OUT_SEED = 3000
+ITERATIONS = (1, 2, 4, 8)
+QUERIES = (16, 32, 64, 128)
+
+
+def held_out_scenes(folder: pathlib.Path, scenes: int, frames: int, size) -> list:
+    from parq_synth import generate
+
+    folder.mkdir(parents=True, exist_ok=True)
+    missing = [k for k in range(scenes) if not (folder / f"scene_{k:05d}" / "boxes.json").exists()]
+    for k in missing:
+        generate(folder, 1, HELD_OUT_SEED, frames=frames, size=size, start=k)
+    return [folder / f"scene_{k:05d}" for k in range(scenes)]
+
+
+def evaluate_setting(detector, scenes, iters, queries, score_threshold=None) -> tuple:
+    """(metrics, per-snippet seconds) over the scenes."""
+    from parq_runtime import evaluation, readers, scene
+
+    pairs, seconds = [], []
+    settings = scene.RunSettings(iters=iters, queries=queries, score_threshold=score_threshold)
+    for folder in scenes:
+        capture = readers.open_capture(folder)
+        result = scene.run(detector, capture, settings)
+        truth, up = evaluation.load_ground_truth(folder / "boxes.json")
+        pairs.append((result.fusion.boxes, truth, up))
+        seconds += [s.seconds for s in result.snippets]
+    return evaluation.evaluate(pairs, detector.classes), seconds
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--model", default=str(common.ROOT / "models" / "parq-demo"))
+    p.add_argument("--scenes", type=int, default=40)
+    p.add_argument("--frames", type=int, default=60)
+    p.add_argument("--size", default="160x120", help="rendered frame size (default 160x120)")
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--out", default=str(common.RESULTS / "tradeoff"))
+    args = p.parse_args()
+
+    from parq_runtime import Detector
+
+    size = tuple(int(v) for v in args.size.split("x"))
+    det = Detector(args.model, threads=args.threads)
+    learned = len(det.card.reference_points)
+    scenes = held_out_scenes(common.CACHE / f"held_out_{args.size}", args.scenes, args.frames,
+                             size)
+    rows = []
+    for iters in ITERATIONS:
+        for queries in sorted(set(QUERIES + (learned,))):
+            metrics, seconds = evaluate_setting(det, scenes, iters, queries)
+            row = {"iterations": iters, "queries": queries,
+                   "seconds_per_snippet": round(statistics.median(seconds), 5)}
+            for t in ("0.25", "0.5", "0.7"):
+                row[f"f1@{t}"] = round(metrics[t]["f1"], 4)
+                row[f"precision@{t}"] = round(metrics[t]["precision"], 4)
+                row[f"recall@{t}"] = round(metrics[t]["recall"], 4)
+            rows.append(row)
+            print(json.dumps(row), file=sys.stderr, flush=True)
+    write(pathlib.Path(args.out), rows, args, learned)
+
+
+def write(out, rows, args, learned):
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out.with_suffix(".csv"), "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    machine = common.machine()
+    out.with_suffix(".json").write_text(json.dumps({"machine": machine, "scenes": args.scenes,
+                                                    "seed": HELD_OUT_SEED, "rows": rows},
+                                                   indent=1))
+    lines = [f"{args.scenes} held-out scenes (parq-synth seed {HELD_OUT_SEED}, {args.size}), "
+             f"3-view snippets, scene-level F1 (parq-eval); latency = median seconds per "
+             f"snippet on {machine['cpu']}, {machine['cores']} cores.", "",
+             "| iterations | queries | F1@0.25 | F1@0.5 | F1@0.7 | ms / snippet |",
+             "|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        q = f"{r['queries']}" + (" (learned)" if r["queries"] == learned else "")
+        lines.append(f"| {r['iterations']} | {q} | {r['f1@0.25']:.3f} | {r['f1@0.5']:.3f} | "
+                     f"{r['f1@0.7']:.3f} | {1000 * r['seconds_per_snippet']:.1f} |")
+    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for queries in sorted({r["queries"] for r in rows}):
+        sel = [r for r in rows if r["queries"] == queries]
+        axes[0].plot([r["iterations"] for r in sel], [r["f1@0.5"] for r in sel], "o-",
+                     label=f"{queries} queries")
+        axes[1].plot([1000 * r["seconds_per_snippet"] for r in sel], [r["f1@0.5"] for r in sel],
+                     "o-", label=f"{queries} queries")
+    axes[0].set_xlabel("iterations")
+    axes[1].set_xlabel("ms per snippet (median)")
+    for ax in axes:
+        ax.set_ylabel("F1 at IoU 0.5")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle("Demo model on held-out generated scenes: accuracy vs compute")
+    fig.tight_layout()
+    fig.savefig(out.with_suffix(".png"), dpi=110)
+
+
+if __name__ == "__main__":
+    main()
