@@ -21,6 +21,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--opset", type=int, default=18, choices=(17, 18),
                    help="ONNX opset (default 18)")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    p.add_argument("--quantize", choices=("int8",), default=None,
+                   help="int8 convolutions in backbone.onnx (static QDQ, calibrated on "
+                        "generated scenes); see the README for when it pays")
+    p.add_argument("--calibration", type=pathlib.Path, default=None,
+                   help="folder of parq-synth scenes to calibrate --quantize with (default: 8 "
+                        "scenes generated on the fly)")
     p.add_argument("--no-check", action="store_true",
                    help="skip the check of the graphs against PyTorch (not recommended)")
     return p
@@ -34,7 +40,8 @@ def main(argv=None) -> int:
     try:
         from .export import export
         result = export(args.checkpoint, out, opset=args.opset, check=not args.no_check,
-                        overwrite=args.force)
+                        overwrite=args.force, quantize=args.quantize,
+                        calibration=args.calibration)
     except ParqError as e:
         print(f"parq-export: error: {e}", file=sys.stderr)
         return e.exit_code

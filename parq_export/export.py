@@ -6,6 +6,7 @@ model, and only then renamed into place, so a failed export leaves nothing behin
 from __future__ import annotations
 
 import contextlib
+import copy
 import datetime
 import hashlib
 import io
@@ -80,7 +81,7 @@ def export_backbone(model: PARQ, path: pathlib.Path, opset: int) -> onnx.ModelPr
         dynamic_shapes={"images": {0: new}, "cached_features": {0: old},
                         "camera": {0: auto}, "T_local_camera": {0: auto}},
         optimize=True, verify=False)
-    return add_operands_branch(fold_weights(program.model_proto), model)
+    return fold_weights(program.model_proto)
 
 
 def export_layer(model: PARQ, path: pathlib.Path, opset: int) -> onnx.ModelProto:
@@ -169,14 +170,54 @@ def _finish_graph(proto: onnx.ModelProto, card: dict, role: str, doc: str) -> on
     return proto
 
 
+def quantize_int8(model: PARQ, base: onnx.ModelProto, card: dict, folder: pathlib.Path,
+                  calibration, log) -> dict:
+    """Replace folder/backbone.onnx by its int8 version; returns the card's record of it.
+    The quantizer works on the graph before the operands branch is added (it cannot follow
+    names into If subgraphs), then the branch is added to its output."""
+    from parq_synth import generate
+
+    from . import quantize
+
+    with tempfile.TemporaryDirectory() as tmp:
+        scenes = calibration
+        if scenes is None:
+            scenes = pathlib.Path(tmp) / "calibration"
+            generate(scenes, 8, 5000, frames=30, size=tuple(model.config.image_size))
+        feeds = quantize.calibration_feeds(scenes, model.config)
+        fp32 = pathlib.Path(tmp) / "backbone_fp32.onnx"
+        onnx.save(base, fp32)
+        int8 = pathlib.Path(tmp) / "backbone_int8.onnx"
+        quantize.quantize_backbone(fp32, int8, [{k: v for k, v in f.items() if k != "key_value"}
+                                                for f in feeds])
+        proto = add_operands_branch(onnx.load(int8), model)
+        onnx.save(_finish_graph(proto, card, "backbone",
+                                "PARQ backbone, int8 convolutions (QDQ, per-channel)"),
+                  folder / "backbone.onnx")
+    errors = verify.quantization_error(folder / "backbone.onnx", feeds[:4], model)
+    log(f"  int8 backbone: memory max abs diff {errors['memory']:.3g} vs fp32 torch "
+        f"(relative {errors['memory_relative']:.3g})")
+    return {"backbone": "int8 weights (per channel, 7-bit range) and uint8 activations, QDQ, "
+                        "convolutions only", "calibration_snippets": len(feeds),
+            "calibration_scenes": str(calibration) if calibration else
+            "8 parq-synth scenes, seed 5000, 30 frames", **errors}
+
+
 def _file_sha256(path) -> str:
     return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
 
 
 def export(checkpoint_path, out_dir, opset: int = DEFAULT_OPSET, check: bool = True,
-           overwrite: bool = False, log=print) -> ExportResult:
+           overwrite: bool = False, log=print, quantize: str | None = None,
+           calibration=None) -> ExportResult:
     """Export ``checkpoint_path`` to ``out_dir``; raises ParqError on bad input or a failed
-    check (then nothing is written)."""
+    check (then nothing is written).
+
+    quantize="int8": after the fp32 graphs pass the check, backbone.onnx's convolutions are
+    quantized (see parq_export.quantize), calibrated on the generated scenes in ``calibration``
+    (default: 8 scenes generated here, parq-synth seed 5000)."""
+    if quantize not in (None, "int8"):
+        raise ParqError(f"--quantize {quantize}: only int8 is supported")
     source = pathlib.Path(checkpoint_path)
     out_dir = pathlib.Path(out_dir)
     if opset not in (17, 18):
@@ -200,7 +241,8 @@ def export(checkpoint_path, out_dir, opset: int = DEFAULT_OPSET, check: bool = T
     tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=parent))
     try:
         with torch.no_grad():
-            backbone = export_backbone(model, tmp, opset)
+            backbone_base = export_backbone(model, tmp, opset)
+            backbone = add_operands_branch(copy.deepcopy(backbone_base), model)
             layer = export_layer(model, tmp, opset)
         onnx.save(_finish_graph(backbone, card, "backbone",
                                 "PARQ backbone: images + cameras of one snippet -> memory and "
@@ -219,6 +261,9 @@ def export(checkpoint_path, out_dir, opset: int = DEFAULT_OPSET, check: bool = T
                                 "reproduce the torch model (nothing was written)")
         card["verification"] = {k: {"max_abs_diff": d, "tolerance": t}
                                 for k, (d, t) in sorted(report.items())}
+        if quantize:
+            card["quantization"] = quantize_int8(model, backbone_base, card, tmp, calibration,
+                                                 log)
         for role in ("backbone", "layer"):
             card["graphs"][role]["sha256"] = _file_sha256(tmp / card["graphs"][role]["file"])
         (tmp / "model.json").write_text(json.dumps(card, indent=1) + "\n")

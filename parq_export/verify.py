@@ -130,3 +130,19 @@ def check(model: PARQ, backbone_path, layer_path, seed: int = 0) -> dict:
 
 def failed(report: dict) -> list:
     return [name for name, (diff, tol) in report.items() if not diff <= tol]
+
+
+def quantization_error(backbone_path, feeds: list, model: PARQ) -> dict:
+    """Max abs difference of the (quantized) backbone's memory from the torch model's."""
+    session = ort.InferenceSession(str(backbone_path), providers=["CPUExecutionProvider"])
+    names = [o.name for o in session.get_outputs()]
+    worst, scale = 0.0, 0.0
+    for feed in feeds:
+        memory = dict(zip(names, session.run(None, feed)))["memory"]
+        with torch.no_grad():
+            x = torch.from_numpy(feed["images"]).permute(0, 3, 1, 2)[None].float() / 255.0
+            ref = model.memory(model.image_features(x), torch.from_numpy(feed["camera"])[None],
+                               torch.from_numpy(feed["T_local_camera"])[None])[0].numpy()
+        worst = max(worst, _max_abs(memory, ref))
+        scale = max(scale, float(np.abs(ref).max()))
+    return {"memory": worst, "memory_relative": worst / max(scale, 1e-12)}
