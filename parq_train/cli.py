@@ -56,6 +56,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", type=int, default=4,
                    help="recurrent iterations supervised per step (default 4)")
     p.add_argument("--lr", type=float, default=5e-4, help="peak learning rate (default 5e-4)")
+    p.add_argument("--snapshot-every", type=int, default=2000,
+                   help="also write OUTPUT's stem + '-stepN.pt' every N training steps "
+                        "(0: never; default 2000)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     return p
 
@@ -96,17 +99,25 @@ def run(args, argv) -> int:
     snippets = data.load_scenes(args.data, config, log=log)
     model = train.new_model(config, args.seed, snippets)
     folders = sorted(p.parent for p in args.data.glob("*/boxes.json"))
+    if args.snapshot_every < 0:
+        raise ParqError("--snapshot-every must not be negative")
     pre_history = pretrain.pretrain(model.backbone, config, folders, args.pretrain_steps,
                                     args.seed, log=log, log_every=500) \
         if args.pretrain_steps else []
     pretrained = time.perf_counter() - start - generated
+    def snapshot(model_now, step):
+        path = args.output.with_name(f"{args.output.stem}-step{step}.pt")
+        checkpoint.save(path, model_now, {"step": step})
+        log(f"snapshot {path}")
+
     model, history = train.train(config, snippets, args.steps, args.seed,
                                  folds_of_class(config.classes), batch_size=args.batch,
                                  iterations=args.iterations, lr=args.lr, log=log,
-                                 log_every=250, model=model)
+                                 log_every=250, model=model, snapshot=snapshot,
+                                 snapshot_every=args.snapshot_every)
     trained = time.perf_counter() - start - generated - pretrained
     record = {"command": "parq-train " + " ".join(argv), "seed": args.seed,
-              "data": {"generator": "parq-synth", "seed": TRAIN_SEED, "scenes": args.scenes,
+              "data": {"generator": "parq-synth", "seed": TRAIN_SEED, "scenes": len(folders),
                        "frames": args.frames, "folder": str(args.data),
                        "snippets": len(snippets)},
               "pretrain_steps": args.pretrain_steps, "steps": args.steps, "batch": args.batch, "iterations": args.iterations,

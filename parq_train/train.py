@@ -10,6 +10,7 @@ speed; the command records how long it took.
 """
 from __future__ import annotations
 
+import copy
 import math
 import time
 
@@ -96,9 +97,13 @@ def new_model(config, seed: int, snippets=None) -> PARQ:
 
 def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_size: int = 4,
           lr: float = 4e-4, iterations: int = 4, log=print, log_every: int = 50,
-          model: PARQ | None = None) -> tuple:
+          model: PARQ | None = None, snapshot=None, snapshot_every: int = 0) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
-    or a fresh one) on the snippets; returns (model with frozen norms, history)."""
+    or a fresh one) on the snippets; returns (model with frozen norms, history).
+
+    ``snapshot(model, step)``, if given, is called every ``snapshot_every`` steps with a
+    copy of the model in evaluation form (frozen norms), so a long run leaves usable
+    checkpoints behind it."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     if model is None:
@@ -138,5 +143,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
                 + "  ".join(f"{k} {mean[k]:.3f}" for k in ("center", "size", "rotation",
                                                            "class")))
             running = {}
+        if snapshot is not None and snapshot_every and (step + 1) % snapshot_every == 0 \
+                and step + 1 < steps:
+            snapshot(swap_norms(copy.deepcopy(model), to_trainable=False).eval(), step + 1)
     model = swap_norms(model, to_trainable=False).eval()
     return model, history
