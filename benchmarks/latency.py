@@ -177,6 +177,19 @@ def main():
         print(f"{queries:4d} queries {iters} iterations: reference {ref['median']:.3f} s, "
               f"runtime {ours['median']:.3f} s ({forms[-1]}), {ref['median'] / ours['median']:.2f}x",
               file=sys.stderr)
+    # Both exact attention forms, forced, at the two settings the issue names: what each
+    # costs up front (backbone, with or without the key/value projections) and per iteration.
+    form_rows = []
+    for queries, iters in ((32, 2), (256, 8)):
+        for form in ("cached", "folded"):
+            runs = [summarise(det.detect(images, K, T, iters=iters, queries=queries,
+                                         form=form).timings)
+                    for _ in range(args.warmup + args.runs)][args.warmup:]
+            row = {"queries": queries, "iterations": iters, "form": form}
+            for stage in ("backbone", "per_iteration", "loop", "total"):
+                row[stage] = round(common.stats([r[stage] for r in runs])["median"], 5)
+            form_rows.append(row)
+            print(json.dumps(row), file=sys.stderr)
     rss = {}
     for system in ("reference", "runtime"):
         cmd = [sys.executable, __file__, "--rss-only", system]
@@ -184,10 +197,10 @@ def main():
             cmd += ["--threads", str(args.threads)]
         out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
         rss[system] = float(out.strip().splitlines()[-1])
-    write(args.out, rows, rss, peak, threads)
+    write(args.out, rows, rss, peak, threads, form_rows)
 
 
-def write(out, rows, rss, peak, threads):
+def write(out, rows, rss, peak, threads, form_rows):
     import pathlib
 
     out = pathlib.Path(out)
@@ -199,7 +212,7 @@ def write(out, rows, rss, peak, threads):
         w.writerows(rows)
     out.with_suffix(".json").write_text(json.dumps(
         {"machine": machine, "threads": threads, "matmul_peak_gflops": peak,
-         "peak_rss_mb": rss, "rows": rows}, indent=1))
+         "peak_rss_mb": rss, "rows": rows, "forms": form_rows}, indent=1))
 
     def get(system, q, i, stage):
         return next(r for r in rows if r["system"] == system and r["queries"] == q
@@ -231,6 +244,15 @@ def write(out, rows, rss, peak, threads):
                 cell += f" ({r['gflop_per_s']:.0f} GFLOP/s, {100 * r['of_peak']:.0f}%)"
             cells.append(cell)
         lines.append(f"| {system} | " + " | ".join(cells) + " |")
+    lines += ["", "Both exact attention forms, forced (median s). \"one more iteration\" is the "
+              "per-iteration time as a share of the same run's backbone:", "",
+              "| queries | iterations | form | backbone | per iteration | backbone + loop | "
+              "one more iteration |", "|---:|---:|---|---:|---:|---:|---:|"]
+    for r in form_rows:
+        lines.append(f"| {r['queries']} | {r['iterations']} | {r['form']} | "
+                     f"{r['backbone']:.3f} | {1000 * r['per_iteration']:.1f} ms | "
+                     f"{r['backbone'] + r['loop']:.3f} | "
+                     f"{100 * r['per_iteration'] / r['backbone']:.1f}% |")
     lines += ["", f"Peak resident memory at 256 queries, 8 iterations: reference "
               f"{rss['reference']:.0f} MB, runtime {rss['runtime']:.0f} MB."]
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")

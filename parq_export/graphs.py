@@ -50,7 +50,8 @@ class BackboneGraph(nn.Module):
         x = images.permute(0, 3, 1, 2).to(torch.float32) / 255.0
         features = self.model.backbone(x)
         every = torch.cat([cached_features, features], 0)
-        memory = self.model.memory(every[None], camera[None], T_local_camera[None])[0]
+        # No batch axis here: indexing one out (x[0]) would export as a 59 MB Gather copy.
+        memory = every.permute(0, 2, 3, 1) + self.model.ray_encoder(camera, T_local_camera)
         return features, memory
 
 

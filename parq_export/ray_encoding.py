@@ -67,4 +67,8 @@ class RayEncoder(nn.Module):
     def forward(self, camera: torch.Tensor, T_local_camera: torch.Tensor) -> torch.Tensor:
         points = inverse_sigmoid(normalize_points(self.ray_points(camera, T_local_camera),
                                                   self.scale))
-        return self.mlp(points.flatten(-2))
+        points = points.flatten(-2)                                   # (..., N, h, w, 3D)
+        # As one 2-D matrix the Linear layers export as Gemm with the bias (and the ReLU)
+        # fused, instead of MatMul + a separate Add over the (N h w, C) result.
+        encoding = self.mlp(points.reshape(-1, points.shape[-1]))
+        return encoding.reshape(*points.shape[:-1], encoding.shape[-1])

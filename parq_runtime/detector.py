@@ -69,12 +69,15 @@ class Detector:
     """Loads a model folder written by ``parq-export`` and runs it on snippets.
 
     providers: onnxruntime execution providers (None: CPU); threads: intra-op threads (None:
-    onnxruntime's default, one per physical core)."""
+    onnxruntime's default, one per physical core); spinning: let idle worker threads spin
+    (``session.intra_op.allow_spinning``; measured in benchmarks/session_options.py)."""
 
-    def __init__(self, model_dir, providers=None, threads=None):
+    def __init__(self, model_dir, providers=None, threads=None, spinning: bool = True):
         self.card = model_card.load(model_dir)
-        self.backbone = sessions.create(self.card.graph_path("backbone"), threads, providers)
-        self.layer = sessions.create(self.card.graph_path("layer"), threads, providers)
+        self.backbone = sessions.create(self.card.graph_path("backbone"), threads, providers,
+                                        spinning)
+        self.layer = sessions.create(self.card.graph_path("layer"), threads, providers,
+                                     spinning)
         self.classes = self.card.classes
 
     def reference_points(self, queries: int) -> np.ndarray:

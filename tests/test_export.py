@@ -155,3 +155,32 @@ def test_int8_export_quantizes_convolutions_and_runs(tiny_checkpoint, tmp_path):
     result = det.detect(images, K, poses, iters=2, queries=8)
     assert len(result.iterations) == 2
     assert np.isfinite(result.iterations[-1].center).all()
+
+
+@pytest.mark.parametrize("form", ["cached", "folded"])
+def test_streaming_reuses_features_and_changes_nothing(tiny_model, form):
+    """Sliding 3-view windows with a FeatureCache: each frame goes through the image encoder
+    once (a cached frame is not passed again), and every snippet's outputs equal those of
+    the snippet run from scratch."""
+    from parq_runtime.detector import FeatureCache
+    from parq_runtime.geometry import camera_pose
+
+    det = Detector(tiny_model)
+    rng = np.random.default_rng(5)
+    frames = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(6)]
+    poses = [camera_pose([0.15 * i, 0.0, 1.4], 0.1 * i, 0.3) for i in range(6)]
+    K = np.array([[55.0, 0, 31.5], [0, 55.0, 23.5], [0, 0, 1]])
+    cache = FeatureCache(3)
+    for start in range(4):
+        window = list(range(start, start + 3))
+        images = [None if i in cache else frames[i] for i in window]
+        assert sum(im is not None for im in images) == (3 if start == 0 else 1)
+        streamed = det.detect(images, K, np.stack([poses[i] for i in window]), iters=2,
+                              queries=10, form=form, frame_keys=window, cache=cache,
+                              score_threshold=0.0)
+        scratch = det.detect([frames[i] for i in window], K,
+                             np.stack([poses[i] for i in window]), iters=2, queries=10,
+                             form=form, score_threshold=0.0)
+        for a, b in zip(streamed.iterations, scratch.iterations):
+            np.testing.assert_allclose(a.center, b.center, atol=1e-5)
+            np.testing.assert_allclose(a.logits, b.logits, atol=1e-4)
