@@ -192,8 +192,12 @@ def run(args) -> int:
         for note in capture.notes:      # after the run: an error stays a single line
             print(f"parq-run: note: {note}", file=sys.stderr)
         extra = f", {images} images in {args.vis}" if args.vis is not None else ""
+        where = f" -> {args.output}" if args.output is not None else ""
         print(f"parq-run: {len(result.snippets)} snippets, {len(result.fusion.boxes)} scene "
-              f"boxes, {result.seconds:.1f} s{extra}", file=sys.stderr)
+              f"boxes, {result.seconds:.1f} s{extra}{where}", file=sys.stderr)
+        if args.output is not None:     # JSON went to a file: show the boxes here
+            for line in results.summary_lines(result.fusion.boxes):
+                print(line, file=sys.stderr)
     return 0
 
 

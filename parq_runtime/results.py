@@ -76,3 +76,15 @@ def load_scene_boxes(path, classes=None) -> list:
         return [Box.from_json(b, classes) for b in data["scene"]["boxes"]]
     except (KeyError, TypeError, ValueError) as e:
         raise ParqError(f"{path}: malformed box ({e})") from None
+
+
+def summary_lines(boxes: list, limit: int = 30) -> list:
+    """One line per scene box, best first, for a terminal: class, score, center and size in
+    metres (world frame)."""
+    ordered = sorted(boxes, key=lambda b: -b.score)
+    lines = [f"  {b.class_name:<10} {b.score:4.2f}  center "
+             + " ".join(f"{v:+6.2f}" for v in b.center) + "  size "
+             + " ".join(f"{v:4.2f}" for v in b.size) for b in ordered[:limit]]
+    if len(ordered) > limit:
+        lines.append(f"  ... and {len(ordered) - limit} more (see the JSON)")
+    return lines

@@ -44,8 +44,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--data", type=pathlib.Path, default=pathlib.Path("data/train"),
                    help="folder of training scenes; generated when missing (default "
                         "data/train)")
-    p.add_argument("--scenes", type=int, default=240,
-                   help="training scenes to generate (default 240)")
+    p.add_argument("--scenes", type=int, default=400,
+                   help="training scenes to generate when --data is missing (default 400)")
+    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                   help="processes generating scenes (default: one per core)")
     p.add_argument("--frames", type=int, default=60, help="frames per scene (default 60)")
     p.add_argument("--pretrain-steps", type=int, default=8000,
                    help="backbone pretraining steps on depth and object classes, the stand-in "
@@ -81,7 +83,7 @@ def run(args, argv) -> int:
     from . import data, pretrain, train
     from .symmetry import folds_of_class
 
-    for name in ("scenes", "frames", "steps", "batch", "iterations"):
+    for name in ("scenes", "frames", "steps", "batch", "iterations", "jobs"):
         if getattr(args, name) < 1:
             raise ParqError(f"--{name} must be at least 1")
     if args.pretrain_steps < 0:
@@ -93,7 +95,7 @@ def run(args, argv) -> int:
     if not args.data.is_dir() or not any(args.data.glob("*/boxes.json")):
         print(f"generating {args.scenes} scenes into {args.data} ...", file=sys.stderr)
         generate(args.data, args.scenes, TRAIN_SEED, frames=args.frames,
-                 size=tuple(config.image_size))
+                 size=tuple(config.image_size), jobs=args.jobs)
     generated = time.perf_counter() - start
     log = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
     snippets = data.load_scenes(args.data, config, log=log)
