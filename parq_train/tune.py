@@ -113,7 +113,10 @@ def run(args) -> int:
                 and tuple(r["eval_region"]) == region)
     authors = next(r for r in table if r["score_threshold"] == 0.8
                    and tuple(r["eval_region"]) == REGIONS[0])
-    record = {"data": str(args.data), "scenes": len(folders), "iters": args.iters,
+    seeds = sorted({json.loads((f / "scene.json").read_text()).get("seed") for f in folders
+                    if (f / "scene.json").exists()})
+    record = {"data": str(args.data), "seeds": seeds, "scenes": len(folders),
+              "iters": args.iters,
               "queries": args.queries, "criterion": "max F1@0.25 + F1@0.5",
               "chosen": best, "authors_settings": authors}
     model = loaded.model()

@@ -68,3 +68,30 @@ def test_loss_goes_down_on_a_tiny_set():
                              log_every=10)
     first, last = history[0]["total"], history[-1]["total"]
     assert last < 0.6 * first, history
+
+
+def test_tune_picks_the_threshold_and_region_that_separate_true_from_false_boxes():
+    """One snippet, one true box (score 0.9, local center 1 m ahead) and two false ones: a
+    confident one far outside the authors' region (4 m ahead) and a weak one (0.4) nearby.
+    Only threshold >= 0.4 with a region that excludes z = 4 m scores F1 = 1."""
+    from parq_runtime.boxes import Box
+    from parq_runtime.geometry import box_corners
+    from parq_train import tune
+
+    def box(center, score, label=0):
+        c, s, R = np.asarray(center, float), np.array([0.5, 0.8, 0.5]), np.eye(3)
+        return Box(c, s, R, 0.0, label, "chair", score, box_corners(c, s, R))
+
+    truth = [box([0.0, 0.0, 1.0], 1.0)]
+    snippet = [(box([0.0, 0.0, 1.0], 0.9), np.array([0.0, 0.0, 1.0])),
+               (box([0.0, 0.0, 4.0], 0.95), np.array([0.0, 0.0, 4.0])),
+               (box([1.0, 0.0, 1.0], 0.4), np.array([1.0, 0.0, 1.0]))]
+    records = [([snippet], truth, (0.0, 0.0, 1.0))]
+    threshold, region, table = tune.select(records, ["chair"], thresholds=(0.3, 0.5, 0.8),
+                                           regions=tune.REGIONS)
+    assert threshold == 0.5 and region[3] < 4.0
+    best = max(r["f1@0.25"] for r in table)
+    assert best == 1.0
+    everything = next(r for r in table if r["score_threshold"] == 0.3
+                      and r["eval_region"][3] == 10.0)
+    assert everything["f1@0.25"] == 0.5     # 1 of 3 predictions right, the one box found
