@@ -82,11 +82,16 @@ class _RestrictedUnpickler(pickle.Unpickler):
     own ``weights_only`` unpickler is not used as is because it refuses the dict subclasses
     (yacs' CfgNode, Lightning's AttributeDict) that training checkpoints hold."""
 
+    # str subclasses that checkpoints record versions with: read back as plain str.
+    AS_STR = {"torch.torch_version.TorchVersion"}
+
     def find_class(self, module, name):
         allowed = torch._weights_only_unpickler._get_allowed_globals()
         qualified = f"{module}.{name}"
         if qualified in allowed:
             return allowed[qualified]
+        if qualified in self.AS_STR:
+            return str
         return _stand_in(qualified)
 
 

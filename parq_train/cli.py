@@ -128,7 +128,7 @@ def run(args, argv) -> int:
                           "pretrain": round(pretrained / 60, 1), "train": round(trained / 60, 1)},
               "finished": datetime.datetime.now(datetime.timezone.utc)
               .isoformat(timespec="seconds"),
-              "torch": torch.__version__, "cpu_count": os.cpu_count(),
+              "torch": str(torch.__version__), "cpu_count": os.cpu_count(),
               "final_loss": history[-1] if history else None}
     model.config = model.config.replace(extra={"training": record})
     checkpoint.save(args.output, model, {"training": record, "history": history,

@@ -133,3 +133,15 @@ def test_unreadable_files(tmp_path):
     (tmp_path / "truncated.pt").write_bytes(data[: len(data) // 2])
     with pytest.raises(ParqError, match="not a readable PyTorch checkpoint"):
         checkpoint.load(tmp_path / "truncated.pt")
+
+
+def test_torch_version_strings_read_back_as_str(tmp_path):
+    """Training records hold torch.__version__ (a str subclass outside the allow-list): it
+    reads back as its text, not as an inert stand-in that cannot be saved again."""
+    import torch
+
+    from parq_export.checkpoint import safe_load
+
+    torch.save({"torch": torch.__version__}, tmp_path / "v.pt")
+    value = safe_load(tmp_path / "v.pt")["torch"]
+    assert type(value) is str and value == str(torch.__version__)

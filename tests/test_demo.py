@@ -1,0 +1,61 @@
+"""The shipped demo model: a complete, self-describing model folder that detects objects in
+its sample scene (a generated room it has never seen), through the runtime alone."""
+from __future__ import annotations
+
+import hashlib
+import json
+import pathlib
+
+import numpy as np
+import onnx
+
+from parq_runtime import Detector, evaluation, readers, scene
+from parq_runtime.model_card import METADATA_KEY
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+DEMO = ROOT / "models" / "parq-demo"
+SAMPLE = DEMO / "sample-scene"
+
+
+def test_demo_folder_is_small_and_its_card_says_how_it_was_made():
+    size = sum(p.stat().st_size for p in DEMO.rglob("*") if p.is_file())
+    assert size < 30e6
+    card = json.loads((DEMO / "model.json").read_text())
+    training = card["extra"]["training"]
+    assert training["command"].startswith("parq-train ")
+    assert training["seed"] == 0 and training["data"]["seed"] == 1000
+    assert sum(training["minutes"].values()) <= 90
+    tuning = card["extra"]["postprocess_tuning"]
+    assert tuning["chosen"]["score_threshold"] == card["postprocess"]["score_threshold"]
+    assert tuning["chosen"]["eval_region"] == card["postprocess"]["eval_region"]
+    for role in ("backbone", "layer"):
+        path = DEMO / card["graphs"][role]["file"]
+        assert hashlib.sha256(path.read_bytes()).hexdigest() == card["graphs"][role]["sha256"]
+        meta = {p.key: p.value for p in onnx.load(str(path), load_external_data=False)
+                .metadata_props}
+        assert json.loads(meta[METADATA_KEY])["extra"] == card["extra"]
+
+
+def test_sample_scene_is_unseen():
+    generated = json.loads((SAMPLE / "scene.json").read_text())
+    card = json.loads((DEMO / "model.json").read_text())
+    used = {card["extra"]["training"]["data"]["seed"], 3000,   # 3000: benchmarks/tradeoff.py
+            *card["extra"]["postprocess_tuning"]["seeds"]}
+    assert generated["seed"] not in used
+
+
+def test_demo_detects_objects_of_its_sample_scene():
+    det = Detector(DEMO)
+    capture = readers.open_capture(SAMPLE)
+    result = scene.run(det, capture, scene.RunSettings(iters=2, queries=32))
+    truth, up = evaluation.load_ground_truth(SAMPLE / "boxes.json")
+    metrics = evaluation.evaluate([(result.fusion.boxes, truth, up)], det.classes)
+    # At least one object found with the right class at IoU 0.25, and the boxes are real
+    # boxes in the room (centers inside its floor plan, sizes of furniture).
+    assert metrics["0.25"]["per_class"] and metrics["0.25"]["recall"] > 0
+    centers = np.array([b.center for b in result.fusion.boxes])
+    corners = np.concatenate([t.corners for t in truth])
+    assert (centers[:, :2] > corners[:, :2].min(0) - 1.0).all()
+    assert (centers[:, :2] < corners[:, :2].max(0) + 1.0).all()
+    sizes = np.array([b.size for b in result.fusion.boxes])
+    assert ((sizes > 0.05) & (sizes < 4.0)).all()
