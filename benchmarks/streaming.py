@@ -69,7 +69,7 @@ def main():
 
     det = Detector(common.official_model())
     images, K, _ = common.golden_snippet()
-    keyframes = walk(args.frames, images, K[0])
+    keyframes = walk(args.frames, images, np.asarray(K).reshape(-1, 3, 3)[0])
     samples = {"streaming": [], "recompute": []}
     for n in range(args.passes + 1):
         order = ("streaming", "recompute") if n % 2 == 0 else ("recompute", "streaming")
