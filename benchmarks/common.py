@@ -30,10 +30,9 @@ def official_checkpoint() -> pathlib.Path:
 
 
 def official_model() -> pathlib.Path:
-    from parq_export.export import export
-
     out = CACHE / "official_model"
     if not (out / "model.json").exists():
+        from parq_export.export import export
         export(official_checkpoint(), out, overwrite=True, log=lambda *_: None)
     return out
 
@@ -111,5 +110,13 @@ def matmul_peak(threads: int, n: int = 2048, runs: int = 7) -> float:
 
 
 def peak_rss_mb() -> float:
+    """This process's peak resident memory (VmHWM).  Not getrusage's ru_maxrss: that is
+    preserved across execve, so a child started by a big benchmark reports its parent's."""
+    try:
+        for line in open("/proc/self/status"):
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
     import resource
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

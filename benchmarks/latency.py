@@ -92,18 +92,19 @@ def summarise(timings: dict) -> dict:
 
 
 def rss_only(system: str, threads) -> None:
-    """Child process: one run at 256 queries and 8 iterations, then print peak RSS (MB)."""
-    import torch
-
-    if threads:
-        torch.set_num_threads(threads)
+    """Child process: one run at 256 queries and 8 iterations, then print peak RSS (MB).
+    The runtime's child never imports torch (as in deployment)."""
     images, K, T = common.golden_snippet()
     if system == "runtime":
         from parq_runtime import Detector
         Detector(common.official_model(), threads=threads).detect(images, K, T, iters=8,
                                                                   queries=256)
     else:
+        import torch
+
         from parq_export import checkpoint
+        if threads:
+            torch.set_num_threads(threads)
         model = checkpoint.load(common.official_checkpoint()).model()
         reference_run(model, images, K, T, 8, model.initial_reference_points()
                       .detach().numpy())
