@@ -27,6 +27,7 @@ import numpy as np
 from . import geometry
 from .boxes import Box
 from .errors import ParqError
+from .files import read_json
 from .iou import iou_matrix
 
 THRESHOLDS = (0.25, 0.5, 0.7)
@@ -36,12 +37,7 @@ BOXES_FORMAT = "parq-onnx-boxes"
 def load_ground_truth(path) -> tuple:
     """(boxes, up) from a boxes.json written by parq-synth (or by hand, same schema)."""
     path = pathlib.Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ParqError(f"{path}: not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ParqError(f"{path}: not readable JSON ({e})") from None
+    data = read_json(path)
     if not isinstance(data, dict) or data.get("format") != BOXES_FORMAT:
         raise ParqError(f"{path}: not a ground-truth boxes.json (format {BOXES_FORMAT!r})")
     try:

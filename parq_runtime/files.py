@@ -1,11 +1,24 @@
-"""Writing outputs so that a failure never leaves a partial file behind."""
+"""Reading JSON inputs with one-line errors, and writing outputs so that a failure never
+leaves a partial file behind."""
 from __future__ import annotations
 
+import json
 import os
 import pathlib
 import tempfile
 
 from .errors import ParqError
+
+
+def read_json(path):
+    """The parsed contents of a JSON file; ParqError naming the file when it is missing or
+    not JSON."""
+    try:
+        return json.loads(pathlib.Path(path).read_text())
+    except FileNotFoundError:
+        raise ParqError(f"{path}: not found") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ParqError(f"{path}: not readable JSON ({e})") from None
 
 
 def check_writable(path) -> pathlib.Path:

@@ -18,13 +18,12 @@ x, y = up, z), "rotation" 3x3 = R_world_object (columns = object axes), "yaw" ra
 """
 from __future__ import annotations
 
-import json
-
 import numpy as np
 
 from . import __version__
 from .boxes import Box
 from .errors import ParqError
+from .files import read_json
 
 SCHEMA = "parq-onnx/detections"
 VERSION = 1
@@ -61,12 +60,7 @@ def to_json(scene, settings, card, score_threshold: float) -> dict:
 
 def load_scene_boxes(path, classes=None) -> list:
     """Scene boxes of a parq-run JSON file, as :class:`Box` objects."""
-    try:
-        data = json.loads(open(path).read())
-    except FileNotFoundError:
-        raise ParqError(f"{path}: not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ParqError(f"{path}: not readable JSON ({e})") from None
+    data = read_json(path)
     if not isinstance(data, dict) or data.get("schema") != SCHEMA:
         raise ParqError(f"{path}: not a parq-run output (schema {SCHEMA!r} expected)")
     if data.get("version") != VERSION:
