@@ -15,7 +15,8 @@ import tempfile
 
 import numpy as np
 
-from parq_runtime import geometry, keyframes, preprocess
+from parq_runtime import keyframes, preprocess
+from parq_runtime.detector import snippet_inputs
 from parq_runtime.errors import ParqError
 from parq_runtime.readers import open_capture
 
@@ -33,18 +34,16 @@ def calibration_feeds(scenes_dir, card_config, views: int = 3, limit: int = 48) 
         keys = keyframes.select([f.cam_to_world for f in capture.frames])
         for window in keyframes.windows(keys, views)[:2]:
             frames = [capture.frames[i] for i in window]
-            prepared = [preprocess.prepare(f.load_image(), f.intrinsics, card_config.image_size)
-                        for f in frames]
-            T_world_camera = np.stack([f.cam_to_world for f in frames])
-            T_world_local = geometry.snippet_frame(T_world_camera, capture.up)
-            camera = geometry.scale_camera(geometry.pinhole(np.stack([p[1] for p in prepared])),
-                                           1.0 / card_config.feature_stride)
+            views = [preprocess.prepare(f.load_image(), f.intrinsics, card_config.image_size)
+                     for f in frames]
+            images, camera, _, T_local_camera = snippet_inputs(
+                views, np.stack([f.cam_to_world for f in frames]), card_config.feature_stride,
+                capture.up)
             feeds.append({
-                "images": np.stack([p[0] for p in prepared]),
+                "images": images,
                 "cached_features": np.zeros((0, C, fh, fw), np.float32),
                 "camera": camera.astype(np.float32),
-                "T_local_camera": (geometry.invert(T_world_local) @ T_world_camera)
-                .astype(np.float32),
+                "T_local_camera": T_local_camera.astype(np.float32),
                 "key_value": np.array(False)})
             if len(feeds) >= limit:
                 return feeds

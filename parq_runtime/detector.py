@@ -57,6 +57,17 @@ def choose_form(views, tokens_per_view, channels, heads, queries, iterations) ->
         else "folded"
 
 
+def snippet_inputs(views, T_world_camera, feature_stride: int, up=geometry.UP_Z) -> tuple:
+    """Network inputs of a snippet from its prepared views ((image, K) pairs of
+    preprocess.prepare) and poses (N, 4, 4): (images (N, h, w, 3) uint8, camera (N, 4) at
+    feature resolution, T_world_local, T_local_camera (N, 4, 4))."""
+    camera = geometry.scale_camera(geometry.pinhole(np.stack([v[1] for v in views])),
+                                   1.0 / feature_stride)
+    T_world_local = geometry.snippet_frame(T_world_camera, up)
+    T_local_camera = geometry.invert(T_world_local) @ T_world_camera
+    return np.stack([v[0] for v in views]), camera, T_world_local, T_local_camera
+
+
 def _check_count(value, name, low, high):
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
         raise ParqError(f"{name} must be an integer, got {value!r}")
@@ -112,11 +123,7 @@ class Detector:
         images = list(images)
         T_world_camera, K = self._check_snippet(images, intrinsics, cam_to_world)
         views = [self._prepare_view(i, image, K_i) for i, (image, K_i) in enumerate(zip(images, K))]
-        camera = geometry.scale_camera(geometry.pinhole(np.stack([v[1] for v in views])),
-                                       1.0 / self.card.feature_stride)
-        T_world_local = geometry.snippet_frame(T_world_camera, up)
-        T_local_camera = geometry.invert(T_world_local) @ T_world_camera
-        return np.stack([v[0] for v in views]), camera, T_world_local, T_local_camera
+        return snippet_inputs(views, T_world_camera, self.card.feature_stride, up)
 
     def encode(self, images, camera, T_local_camera, cached: bool, cached_features=None):
         """Run backbone.onnx on new frames (Nn, h, w, 3) after ``cached_features`` (Nc, C, h',
