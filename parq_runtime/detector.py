@@ -80,13 +80,17 @@ class Detector:
     """Loads a model folder written by ``parq-export`` and runs it on snippets.
 
     providers: onnxruntime execution providers (None: CPU); threads: intra-op threads (None:
-    onnxruntime's default, one per physical core); spinning: let idle worker threads spin
-    (``session.intra_op.allow_spinning``; measured in benchmarks/session_options.py)."""
+    onnxruntime's default, one per physical core); spinning: let the layer session's idle
+    worker threads spin between iterations (``session.intra_op.allow_spinning``).  Off by
+    default, and the backbone session never spins: a spinning pool keeps its cores busy for
+    tens of milliseconds after its run returns, which slowed the first iteration after the
+    backbone from 36 to 60 ms and whatever the caller does next (benchmarks/session_options.py).
+    """
 
-    def __init__(self, model_dir, providers=None, threads=None, spinning: bool = True):
+    def __init__(self, model_dir, providers=None, threads=None, spinning: bool = False):
         self.card = model_card.load(model_dir)
         self.backbone = sessions.create(self.card.graph_path("backbone"), threads, providers,
-                                        spinning)
+                                        spinning=False)
         self.layer = sessions.create(self.card.graph_path("layer"), threads, providers,
                                      spinning)
         self.classes = self.card.classes

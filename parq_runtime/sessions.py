@@ -5,7 +5,8 @@ Choices (measured in ``benchmarks/session_options.py``; see the README):
   picks the blocked (NCHWc) convolution kernels;
 * intra-op threads: all physical cores unless ``threads`` says otherwise; inter-op 1 (the graphs
   are chains, there is nothing to run side by side);
-* spinning: off for the backbone when more than one session shares the cores, see the README.
+* spinning (``session.intra_op.allow_spinning``) off unless asked for: two sessions share the
+  cores, and a pool that spins after its run steals them from the other one (see Detector).
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from .errors import ParqError
 GRAPH_OPTIMIZATION = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
 
 
-def session_options(threads: int | None = None, spinning: bool = True) -> ort.SessionOptions:
+def session_options(threads: int | None = None, spinning: bool = False) -> ort.SessionOptions:
     options = ort.SessionOptions()
     options.graph_optimization_level = GRAPH_OPTIMIZATION
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
@@ -47,7 +48,7 @@ def resolve_providers(providers) -> list:
     return list(providers)
 
 
-def create(path, threads=None, providers=None, spinning=True) -> ort.InferenceSession:
+def create(path, threads=None, providers=None, spinning=False) -> ort.InferenceSession:
     if threads is not None and (int(threads) < 1 or int(threads) > 4 * (os.cpu_count() or 1)):
         raise ParqError(f"--threads {threads}: use 1 to {4 * (os.cpu_count() or 1)}")
     try:
