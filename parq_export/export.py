@@ -14,7 +14,6 @@ import json
 import logging
 import os
 import pathlib
-import shutil
 import tempfile
 import warnings
 from dataclasses import dataclass
@@ -26,7 +25,7 @@ import torch
 
 from parq_runtime import __version__
 from parq_runtime.errors import ParqError
-from parq_runtime.files import umask
+from parq_runtime import files
 from parq_runtime.model_card import CARD_FORMAT, CARD_VERSION, METADATA_KEY
 
 from . import checkpoint as ckpt
@@ -238,8 +237,7 @@ def export(checkpoint_path, out_dir, opset: int = DEFAULT_OPSET, check: bool = T
             + ", ".join(checkpoint.defaulted))
     model = checkpoint.model()
     card = build_card(model, checkpoint, source, opset)
-    tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=parent))
-    try:
+    with files.atomic_folder(out_dir, "the model folder") as tmp:
         with torch.no_grad():
             backbone_base = export_backbone(model, tmp, opset)
             backbone = add_operands_branch(copy.deepcopy(backbone_base), model)
@@ -267,11 +265,4 @@ def export(checkpoint_path, out_dir, opset: int = DEFAULT_OPSET, check: bool = T
         for role in ("backbone", "layer"):
             card["graphs"][role]["sha256"] = _file_sha256(tmp / card["graphs"][role]["file"])
         (tmp / "model.json").write_text(json.dumps(card, indent=1) + "\n")
-        os.chmod(tmp, 0o777 & ~umask())
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return ExportResult(out_dir, card, report)

@@ -1,10 +1,12 @@
-"""Reading JSON inputs with one-line errors, and writing outputs so that a failure never
-leaves a partial file behind."""
+"""Reading JSON inputs with one-line errors, and writing outputs (files and folders) so that
+a failure never leaves a partial one behind."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import pathlib
+import shutil
 import tempfile
 
 from .errors import ParqError
@@ -47,6 +49,48 @@ def atomic_write(path, data) -> None:
     except BaseException:
         pathlib.Path(tmp).unlink(missing_ok=True)
         raise
+
+
+@contextlib.contextmanager
+def atomic_folder(folder, what: str):
+    """``with atomic_folder(folder, "the scene") as tmp:`` yields an empty temporary folder
+    beside ``folder`` to fill.  When the block ends without error it becomes ``folder``: an
+    existing folder is moved aside first and put back if the rename fails, so ``folder`` is
+    never missing or half-written.  On any error the temporary folder is removed, and an
+    OSError becomes ParqError("FOLDER: could not write WHAT (...)")."""
+    folder = pathlib.Path(folder)
+    parent = folder.absolute().parent
+    try:
+        tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp",
+                                            dir=parent))
+    except OSError as e:
+        raise ParqError(f"{parent}: cannot write there ({e.strerror or e})") from None
+    try:
+        yield tmp
+        os.chmod(tmp, 0o777 & ~umask())     # mkdtemp makes it private; outputs are not
+        _swap_into_place(tmp, folder)
+    except OSError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise ParqError(f"{folder}: could not write {what} ({e.strerror or e})") from None
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _swap_into_place(tmp: pathlib.Path, folder: pathlib.Path) -> None:
+    if not folder.exists():
+        os.replace(tmp, folder)
+        return
+    old = pathlib.Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".old",
+                                        dir=folder.absolute().parent))
+    os.replace(folder, old / "previous")
+    try:
+        os.replace(tmp, folder)
+    except OSError:
+        os.replace(old / "previous", folder)
+        old.rmdir()
+        raise
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def umask() -> int:

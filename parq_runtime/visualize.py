@@ -21,13 +21,11 @@ import json
 import os
 import pathlib
 import re
-import shutil
-import tempfile
 
 import cv2
 import numpy as np
 
-from . import geometry
+from . import files, geometry
 from .errors import ParqError
 from .ply import class_color
 
@@ -176,12 +174,10 @@ def write(result, folder) -> int:
     """Draw every keyframe of every snippet of a :class:`~parq_runtime.scene.SceneResult` into
     ``folder`` (atomically); returns the number of images."""
     folder = check_output(folder)
-    parent = folder.absolute().parent
     frames = {f.name: f for f in result.capture.frames}
     scene_boxes = list(result.fusion.boxes) if result.fusion is not None else []
-    tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=parent))
-    try:
-        index = []
+    index = []
+    with files.atomic_folder(folder, "the visualisation") as tmp:
         for snippet in result.snippets:
             for j, name in enumerate(snippet.frames):
                 frame = frames[name]
@@ -200,31 +196,4 @@ def write(result, folder) -> int:
         (tmp / "index.json").write_text(json.dumps(
             {"schema": SCHEMA, "version": 1, "capture": str(result.capture.path),
              "scene_boxes": len(scene_boxes), "images": index}, indent=1) + "\n")
-        os.chmod(tmp, 0o777 & ~_umask())
-        old = None
-        if folder.exists():         # an earlier --vis output (check_output said so)
-            old = pathlib.Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".old",
-                                                dir=parent))
-            os.replace(folder, old / "previous")
-        try:
-            os.replace(tmp, folder)
-        except OSError:
-            if old is not None:
-                os.replace(old / "previous", folder)
-                old.rmdir()
-            raise
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except OSError as e:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise ParqError(f"{folder}: could not write the visualisation ({e})") from None
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return len(index)
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask

@@ -19,9 +19,7 @@ complete, so an interrupted run never leaves a partial ``scene_<k>``.
 from __future__ import annotations
 
 import json
-import os
 import pathlib
-import shutil
 import tempfile
 import time
 
@@ -29,6 +27,7 @@ import cv2
 import numpy as np
 
 from parq_runtime.errors import ParqError
+from parq_runtime.files import atomic_folder
 
 from . import render as render_mod
 from .scene import GENERATOR_VERSION, STREAM_NOISE, Scene, build_scene, check_args, rng_for
@@ -110,39 +109,11 @@ def generate_scene(out_dir, seed: int, frames: int = 60, size=(320, 240), *, ind
     if out_dir.exists() and not overwrite:
         raise ParqError(f"{out_dir}: already exists (pass overwrite=True / --overwrite to "
                         "replace it)")
-    parent = out_dir.parent
-    ensure_writable(parent)
+    ensure_writable(out_dir.parent)
     scene = build_scene(seed, index, frames, size)
-    try:
-        tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp",
-                                            dir=parent))
-    except OSError as e:
-        raise ParqError(f"{parent}: cannot write there ({e.strerror or e})") from None
-    try:
+    with atomic_folder(out_dir, "the scene") as tmp:
         write_scene_files(scene, tmp, timings)
-        os.chmod(tmp, 0o777 & ~_umask())    # mkdtemp makes it private; a scene is not
-        if out_dir.exists():
-            old = pathlib.Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".old",
-                                                dir=parent))
-            old.rmdir()
-            os.rename(out_dir, old)
-            os.rename(tmp, out_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.rename(tmp, out_dir)
-    except OSError as e:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise ParqError(f"{out_dir}: could not write the scene ({e.strerror or e})") from None
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return scene
-
-
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
 
 
 def ensure_writable(folder) -> pathlib.Path:
