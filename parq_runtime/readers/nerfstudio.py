@@ -122,25 +122,11 @@ class _Camera:
             self.size = image_size(_number(w, where, "w"), _number(h, where, "h"), where)
         else:
             self.size = None
-        if get("fl_x") is not None:
-            fx = _number(get("fl_x"), where, "fl_x")
-        elif get("camera_angle_x") is not None:
-            angle = _number(get("camera_angle_x"), where, "camera_angle_x")
-            if not 0 < angle < math.pi:
-                raise ParqError(f"{where}: camera_angle_x {angle:g} rad is not a field of view "
-                                "between 0 and pi")
-            fx = self._need_size(first_image)[0] / 2 / math.tan(angle / 2)
-        else:
+        fx = self._focal(params, "x", 0, first_image)
+        if fx is None:
             raise ParqError(f"{where}: no focal length (fl_x or camera_angle_x)")
-        if get("fl_y") is not None:
-            fy = _number(get("fl_y"), where, "fl_y")
-        elif get("camera_angle_y") is not None:
-            angle = _number(get("camera_angle_y"), where, "camera_angle_y")
-            if not 0 < angle < math.pi:
-                raise ParqError(f"{where}: camera_angle_y {angle:g} rad is not a field of view "
-                                "between 0 and pi")
-            fy = self._need_size(first_image)[1] / 2 / math.tan(angle / 2)
-        else:
+        fy = self._focal(params, "y", 1, first_image)
+        if fy is None:
             fy = fx
         cx = (_number(get("cx"), where, "cx") if get("cx") is not None
               else self._need_size(first_image)[0] / 2)
@@ -173,6 +159,20 @@ class _Camera:
         if kind == "fisheye" or any(coefficients):
             size = self._need_size(first_image)
             self.undistort = Undistorter(self.K, coefficients, size, kind, where)
+
+    def _focal(self, params: dict, axis: str, dim: int, first_image) -> float | None:
+        """fl_<axis>, or from the field of view camera_angle_<axis> (radians) and the image's
+        size along ``dim``: size / 2 / tan(angle / 2); None when neither is given."""
+        focal, fov = params.get(f"fl_{axis}"), params.get(f"camera_angle_{axis}")
+        if focal is not None:
+            return _number(focal, self.where, f"fl_{axis}")
+        if fov is None:
+            return None
+        angle = _number(fov, self.where, f"camera_angle_{axis}")
+        if not 0 < angle < math.pi:
+            raise ParqError(f"{self.where}: camera_angle_{axis} {angle:g} rad is not a field of "
+                            "view between 0 and pi")
+        return self._need_size(first_image)[dim] / 2 / math.tan(angle / 2)
 
     def _need_size(self, first_image: pathlib.Path) -> tuple:
         if self.size is None:
