@@ -63,6 +63,8 @@ class PARQConfig:
     score_threshold: float = 0.8      # the authors' evaluation threshold
     nms_iou: float = 0.1              # class-agnostic NMS on axis-aligned bounds
     eval_region: tuple = (-1.5, 1.5, 0.0, 2.0)  # kept centers: local x in (a, b), z in (c, d)
+    fusion: str = "best"              # scene fusion (parq_runtime.fusion): the authors' "best"
+    min_support: int = 1              # snippets that must see a scene box (1: the authors')
     extra: dict = field(default_factory=dict, compare=False)  # free-form provenance
 
     feature_stride = 4  # FPN level P2; every level is resized to it
@@ -85,6 +87,10 @@ class PARQConfig:
             # P2 (stride 4) must be exactly (w/4, h/4) for the camera scaling to hold.
             problems.append(f"image_size {self.image_size}: width and height must be "
                             "multiples of 4, at least 32")
+        if self.fusion not in ("best", "mean"):
+            problems.append(f"fusion {self.fusion!r} must be 'best' or 'mean'")
+        if not isinstance(self.min_support, int) or self.min_support < 1:
+            problems.append(f"min_support {self.min_support!r} must be an integer >= 1")
         if not 0 < self.ray_depth[0] < self.ray_depth[1]:
             problems.append(f"ray_depth {self.ray_depth} must be 0 < near < far")
         if problems:

@@ -8,6 +8,7 @@ import pathlib
 import sys
 
 from .errors import ParqError
+from .fusion import MODES
 
 DEFAULT_MODEL = pathlib.Path(__file__).resolve().parents[1] / "models" / "parq-demo"
 
@@ -86,6 +87,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--all-regions", action="store_true",
                    help="keep boxes anywhere; by default only centers inside the authors' "
                         "evaluation region of each snippet are kept")
+    p.add_argument("--fusion", choices=MODES, default=None,
+                   help="scene box from the snippets' matched detections: best = the highest "
+                        "score (the authors' protocol), mean = its class and rotation with the "
+                        "score-weighted mean center and size (default: the model card's)")
+    p.add_argument("--min-support", type=positive_int, default=None,
+                   help="report a scene box only when at least this many snippets detect it "
+                        "(default: the model card's; 1 for the authors' checkpoints)")
     p.add_argument("--form", choices=("auto", "cached", "folded"), default="auto",
                    help="cross-attention form: auto picks the cheaper exact one (default)")
     p.add_argument("--keyframe-angle", type=non_negative_float, default=15.0,
@@ -169,7 +177,7 @@ def run(args) -> int:
         iters=args.iters, queries=args.queries, views=args.views, stride=args.stride,
         score_threshold=args.score_threshold, region=not args.all_regions, form=args.form,
         keyframe_angle=args.keyframe_angle, keyframe_distance=args.keyframe_distance,
-        max_snippets=args.max_snippets)
+        max_snippets=args.max_snippets, fusion=args.fusion, min_support=args.min_support)
     detector.reference_points(args.queries)  # argument check before the long part
     keys, snippets = scene.plan(capture, settings)
     if not snippets:

@@ -82,6 +82,15 @@ class ModelCard:
         return tuple(float(v) for v in self.raw["postprocess"]["eval_region"])
 
     @property
+    def fusion(self) -> str:
+        """Scene fusion mode; cards written before it was recorded use the authors' "best"."""
+        return str(self.raw["postprocess"].get("fusion", "best"))
+
+    @property
+    def min_support(self) -> int:
+        return int(self.raw["postprocess"].get("min_support", 1))
+
+    @property
     def max_views(self) -> int:
         return int(self.raw["limits"]["max_views"])
 

@@ -36,8 +36,9 @@ def to_json(scene, settings, card, score_threshold: float) -> dict:
                          "T_world_local": np.round(s.T_world_local, 8).tolist(),
                          "form": s.form, "seconds": round(s.seconds, 4),
                          "boxes": [b.to_json() for b in s.boxes]})
-    fused = [dict(b.to_json(), snippet=int(src))
-             for b, src in zip(scene.fusion.boxes, scene.fusion.sources)]
+    fused = [dict(b.to_json(), snippet=int(src), support=int(n))
+             for b, src, n in zip(scene.fusion.boxes, scene.fusion.sources,
+                                  scene.fusion.supports)]
     return {
         "schema": SCHEMA, "version": VERSION,
         "model": {"folder": str(card.folder),
@@ -46,6 +47,7 @@ def to_json(scene, settings, card, score_threshold: float) -> dict:
         "settings": {"iters": settings.iters, "queries": settings.queries,
                      "views": settings.views, "stride": settings.stride or settings.views,
                      "score_threshold": score_threshold, "region": settings.region,
+                     "fusion": scene.fusion.mode, "min_support": scene.fusion.min_support,
                      "form": settings.form, "keyframe_angle_deg": settings.keyframe_angle,
                      "keyframe_distance_m": settings.keyframe_distance},
         "capture": {"path": str(scene.capture.path), "format": scene.capture.format,

@@ -27,6 +27,8 @@ class RunSettings:
     keyframe_angle: float = 15.0
     keyframe_distance: float = 0.1
     max_snippets: int | None = None
+    fusion: str | None = None             # None: the model card's
+    min_support: int | None = None        # None: the model card's
 
 
 @dataclass
@@ -63,7 +65,10 @@ def run(detector, capture: Capture, settings: RunSettings, progress=None) -> Sce
     start = time.perf_counter()
     keys, snippets = plan(capture, settings)
     result = SceneResult(capture, [capture.frames[i].name for i in keys],
-                         fusion=SceneFusion(up=capture.up))
+                         fusion=SceneFusion(
+                             up=capture.up,
+                             mode=settings.fusion or detector.card.fusion,
+                             min_support=settings.min_support or detector.card.min_support))
     # Overlapping windows share frames: their image features are computed once (streaming).
     cache = FeatureCache(settings.views) if (settings.stride or settings.views) < \
         settings.views else None

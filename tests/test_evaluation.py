@@ -96,6 +96,41 @@ def test_scene_fusion_replaces_by_score_and_adds_unmatched():
     assert len(fusion.boxes) == 4
 
 
+def test_mean_fusion_averages_the_best_class_weighted_by_score():
+    fusion = SceneFusion(mode="mean")
+    fusion.add([box([0.0, 0, 0.5], size=(1, 1, 1), score=0.6)], 0)
+    fusion.add([box([0.2, 0, 0.5], size=(1.2, 1, 1), score=0.9)], 1)
+    # another class in the same cluster: matched, but not averaged into the chair
+    fusion.add([box([0.1, 0, 0.5], name="table", score=0.3)], 2)
+    (fused,) = fusion.boxes
+    np.testing.assert_allclose(fused.center, [(0.6 * 0.0 + 0.9 * 0.2) / 1.5, 0, 0.5])
+    np.testing.assert_allclose(fused.size, [(0.6 * 1.0 + 0.9 * 1.2) / 1.5, 1, 1])
+    assert fused.class_name == "chair" and fused.score == 0.9 and fusion.sources == [1]
+    np.testing.assert_allclose(fused.corners, geometry.box_corners(fused.center, fused.size,
+                                                                   fused.rotation))
+    # the authors' mode keeps the best detection as it is
+    best = SceneFusion(mode="best")
+    best.add([box([0.0, 0, 0.5], score=0.6)], 0)
+    best.add([box([0.2, 0, 0.5], score=0.9)], 1)
+    np.testing.assert_allclose(best.boxes[0].center, [0.2, 0, 0.5])
+
+
+def test_min_support_counts_snippets_not_detections():
+    fusion = SceneFusion(min_support=2)
+    fusion.add([box([0, 0, 0.5]), box([5, 0, 0.5])], 0)
+    assert fusion.boxes == []
+    fusion.add([box([0.05, 0, 0.5])], 1)           # the first box, seen again
+    fusion.add([box([9, 0, 0.5])], 1)              # a new box, once
+    assert [round(float(b.center[0]), 2) for b in fusion.boxes] == [0.0]
+    assert fusion.supports == [2] and fusion.sources == [0]
+    assert SceneFusion(min_support=1).min_support == 1
+    from parq_runtime.errors import ParqError
+    with pytest.raises(ParqError, match="fusion mode"):
+        SceneFusion(mode="median")
+    with pytest.raises(ParqError, match="min_support"):
+        SceneFusion(min_support=0)
+
+
 def test_parq_eval_cli(tmp_path):
     gt = {"format": "parq-onnx-boxes", "version": 1, "frame": "world", "up": [0, 0, 1],
           "boxes": [box([0, 0, 0.5]).to_json(), box([2, 0, 0.5]).to_json()]}

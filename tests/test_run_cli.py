@@ -72,7 +72,7 @@ def test_parq_run_end_to_end(tiny_model, tmp_path, authors_names):
     assert 0 < len(data["scene"]["boxes"]) <= total
     box = data["scene"]["boxes"][0]
     assert set(box) >= {"class", "label", "score", "center", "size", "rotation", "yaw",
-                        "corners", "snippet"}
+                        "corners", "snippet", "support"}
     R = np.array(box["rotation"])
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-5)
     # same run to stdout, sliding windows and a snippet cap
@@ -80,6 +80,16 @@ def test_parq_run_end_to_end(tiny_model, tmp_path, authors_names):
                               "--max-snippets", 5, "-q")
     assert code == 0
     assert len(json.loads(stdout)["snippets"]) == 5
+    assert (data["settings"]["fusion"], data["settings"]["min_support"]) == ("best", 1)
+    # fusion chosen on the command line: every scene box is seen by at least 2 snippets
+    code, stdout, _ = run_cli(folder, "--model", tiny_model, "--iters", 2, "--queries", 16,
+                              "--score-threshold", 0, "--all-regions", "--fusion", "mean",
+                              "--min-support", 2, "-q")
+    assert code == 0
+    mean = json.loads(stdout)
+    assert (mean["settings"]["fusion"], mean["settings"]["min_support"]) == ("mean", 2)
+    assert mean["scene"]["boxes"] and min(b["support"] for b in mean["scene"]["boxes"]) >= 2
+    assert min(b["support"] for b in data["scene"]["boxes"]) >= 1
 
 
 def _one_line_error(code, stdout, stderr, *needles):
@@ -96,7 +106,8 @@ def test_bad_arguments(tiny_model, scannet_folder, tmp_path):
                          (["--queries", "many"], "--queries"),
                          (["--queries", 5000], "queries = 5000"),
                          (["--views", 0], "--views"), (["--form", "fast"], "--form"),
-                         (["--threads", 0], "--threads")):
+                         (["--threads", 0], "--threads"), (["--fusion", "avg"], "--fusion"),
+                         (["--min-support", 0], "--min-support")):
         out = tmp_path / "x.json"
         _one_line_error(*run_cli(scannet_folder, "--model", tiny_model, "-o", out, *args),
                         needle)

@@ -87,11 +87,13 @@ def test_tune_picks_the_threshold_and_region_that_separate_true_from_false_boxes
                (box([0.0, 0.0, 4.0], 0.95), np.array([0.0, 0.0, 4.0])),
                (box([1.0, 0.0, 1.0], 0.4), np.array([1.0, 0.0, 1.0]))]
     records = [([snippet], truth, (0.0, 0.0, 1.0))]
-    threshold, region, table = tune.select(records, ["chair"], thresholds=(0.3, 0.5, 0.8),
-                                           regions=tune.REGIONS)
-    assert threshold == 0.5 and region[3] < 4.0
+    best, table = tune.select(records, ["chair"], thresholds=(0.3, 0.5, 0.8),
+                              regions=tune.REGIONS)
+    assert best["score_threshold"] == 0.5 and best["eval_region"][3] < 4.0
+    # one snippet: support 2 or 3 reports nothing; equal F1s go to the authors' fusion
+    assert (best["fusion"], best["min_support"]) == ("best", 1)
     best = max(r["f1@0.25"] for r in table)
     assert best == 1.0
     everything = next(r for r in table if r["score_threshold"] == 0.3
-                      and r["eval_region"][3] == 10.0)
+                      and r["eval_region"][3] == 10.0 and r["min_support"] == 1)
     assert everything["f1@0.25"] == 0.5     # 1 of 3 predictions right, the one box found
