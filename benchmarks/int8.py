@@ -28,10 +28,15 @@ import tradeoff
 def export_pair(checkpoint, name: str, calibration) -> tuple:
     from parq_export.export import export
 
+    import hashlib
+
+    digest = hashlib.sha256(pathlib.Path(checkpoint).read_bytes()).hexdigest()
     paths = []
     for quantize in (None, "int8"):
         out = common.CACHE / f"{name}_{quantize or 'fp32'}"
-        if not (out / "model.json").exists():
+        card = out / "model.json"
+        # re-export when the checkpoint changed (a re-tuned demo has new post-processing)
+        if not card.exists() or json.loads(card.read_text())["checkpoint"]["sha256"] != digest:
             export(checkpoint, out, overwrite=True, quantize=quantize, calibration=calibration,
                    log=lambda *_: None)
         paths.append(out)
