@@ -34,10 +34,10 @@ def calibration_feeds(scenes_dir, card_config, views: int = 3, limit: int = 48) 
         keys = keyframes.select([f.cam_to_world for f in capture.frames])
         for window in keyframes.windows(keys, views)[:2]:
             frames = [capture.frames[i] for i in window]
-            views = [preprocess.prepare(f.load_image(), f.intrinsics, card_config.image_size)
-                     for f in frames]
+            prepared = [preprocess.prepare(f.load_image(), f.intrinsics,
+                                           card_config.image_size) for f in frames]
             images, camera, _, T_local_camera = snippet_inputs(
-                views, np.stack([f.cam_to_world for f in frames]), card_config.feature_stride,
+                prepared, np.stack([f.cam_to_world for f in frames]), card_config.feature_stride,
                 capture.up)
             feeds.append({
                 "images": images,

@@ -136,7 +136,13 @@ def test_int8_export_quantizes_convolutions_and_runs(tiny_checkpoint, tmp_path):
     from parq_runtime.geometry import camera_pose
     from parq_synth import generate
 
-    generate(tmp_path / "calibration", 1, 7, frames=12, size=(64, 48))
+    from parq_export import quantize
+    from parq_export.checkpoint import load
+
+    generate(tmp_path / "calibration", 2, 7, frames=12, size=(64, 48))
+    # two snippets at most per scene: more than two means the second scene was read too
+    feeds = quantize.calibration_feeds(tmp_path / "calibration", load(tiny_checkpoint).config)
+    assert len(feeds) > 2
     out = tmp_path / "int8"
     export(tiny_checkpoint, out, log=lambda *_: None, quantize="int8",
            calibration=tmp_path / "calibration")
