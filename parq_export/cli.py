@@ -5,11 +5,12 @@ import argparse
 import pathlib
 import sys
 
+from parq_runtime.arguments import OneLineParser, integer
 from parq_runtime.errors import ParqError
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="parq-export",
         description="Export a PARQ checkpoint (the authors' release file, their Lightning "
                     "training checkpoints, or this package's) to ONNX: backbone.onnx, "
@@ -18,7 +19,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=pathlib.Path, default=None,
                    help="model folder to write (default: the checkpoint's name without "
                         "extension, beside it)")
-    p.add_argument("--opset", type=int, default=18, choices=(17, 18),
+    p.add_argument("--opset", type=integer, default=18, choices=(17, 18),
                    help="ONNX opset (default 18)")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
     p.add_argument("--quantize", choices=("int8",), default=None,

@@ -7,53 +7,18 @@ import os
 import pathlib
 import sys
 
+from .arguments import OneLineParser, non_negative_float, positive_int, score
 from .errors import ParqError
 from .fusion import MODES
 
 DEFAULT_MODEL = pathlib.Path(__file__).resolve().parents[1] / "models" / "parq-demo"
 
 
-def positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{value} must be at least 1")
-    return value
-
-
-def non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not value >= 0:
-        raise argparse.ArgumentTypeError(f"{value} must not be negative")
-    return value
-
-
-def score(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not 0.0 <= value < 1.0:
-        raise argparse.ArgumentTypeError(f"{value} must be at least 0 and below 1")
-    return value
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):
-        # one line, like every other parq-run error (argparse would print the usage first)
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
 def parser() -> argparse.ArgumentParser:
     from .gravity import CHOICES
     from .readers import FORMATS
 
-    p = _Parser(
+    p = OneLineParser(
         prog="parq-run",
         description="Detect 3D boxes in a folder of posed RGB frames with an exported PARQ "
                     "model: keyframes -> snippets -> detections -> scene fusion, as JSON.")

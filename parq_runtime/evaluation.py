@@ -17,7 +17,6 @@ Three deliberate differences from their code, each documented in the README:
 """
 from __future__ import annotations
 
-import argparse
 import json
 import pathlib
 import sys
@@ -125,7 +124,9 @@ def format_table(metrics: dict) -> str:
 def main(argv=None) -> int:
     from .results import load_scene_boxes
 
-    p = argparse.ArgumentParser(
+    from .arguments import OneLineParser
+
+    p = OneLineParser(
         prog="parq-eval",
         description="Scene-level precision / recall / F1 of parq-run's fused boxes against "
                     "ground truth, at 3D IoU 0.25, 0.5 and 0.7 (the authors' protocol, with "

@@ -5,25 +5,14 @@ import argparse
 import sys
 import time
 
+from parq_runtime.arguments import OneLineParser, integer
 from parq_runtime.errors import ParqError
 
 PROG = "parq-synth"
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):          # one line + exit 2, as for ParqError
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
-def _int(text: str) -> int:
-    try:
-        return int(text, 10)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = OneLineParser(
         prog=PROG,
         description="Generate synthetic indoor scenes (a textured room with 4-10 pieces of "
                     "furniture of the 9 ScanNet classes, seen by a hand-held camera) as "
@@ -35,22 +24,22 @@ def build_parser() -> argparse.ArgumentParser:
                "--width 160 --height 120")
     p.add_argument("out", metavar="OUT",
                    help="output folder (created if missing); scenes go to OUT/scene_<k>/")
-    p.add_argument("--scenes", type=_int, required=True, metavar="N",
+    p.add_argument("--scenes", type=integer, required=True, metavar="N",
                    help="number of scenes to write (>= 1)")
-    p.add_argument("--seed", type=_int, required=True, metavar="S",
+    p.add_argument("--seed", type=integer, required=True, metavar="S",
                    help="dataset seed (>= 0); scene k uses SeedSequence([S, k])")
-    p.add_argument("--start", type=_int, default=0, metavar="K",
+    p.add_argument("--start", type=integer, default=0, metavar="K",
                    help="index of the first scene (default 0): writes scene_<K> .. "
                         "scene_<K+N-1>, e.g. to extend a dataset or redo one scene alone")
-    p.add_argument("--frames", type=_int, default=60, metavar="F",
+    p.add_argument("--frames", type=integer, default=60, metavar="F",
                    help="frames per scene (>= 1, default 60; about 6-12 cm apart)")
-    p.add_argument("--width", type=_int, default=320, metavar="W",
+    p.add_argument("--width", type=integer, default=320, metavar="W",
                    help="image width in pixels (16-4096, default 320)")
-    p.add_argument("--height", type=_int, default=240, metavar="H",
+    p.add_argument("--height", type=integer, default=240, metavar="H",
                    help="image height in pixels (16-4096, default 240)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace scene folders that already exist (default: refuse)")
-    p.add_argument("--jobs", type=_int, default=1, metavar="J",
+    p.add_argument("--jobs", type=integer, default=1, metavar="J",
                    help="scenes rendered in parallel processes (default 1)")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     return p

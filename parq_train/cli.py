@@ -17,6 +17,8 @@ import pathlib
 import sys
 import time
 
+from parq_runtime.arguments import (OneLineParser, integer, non_negative_int, positive_float,
+                                    positive_int)
 from parq_runtime.errors import ParqError
 
 # Scene seeds: training scenes use parq-synth seed TRAIN_SEED, validation VALIDATION_SEED; the
@@ -38,30 +40,30 @@ def demo_config(**overrides):
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="parq-train", description=__doc__.splitlines()[0])
+    p = OneLineParser(prog="parq-train", description=__doc__.splitlines()[0])
     p.add_argument("output", type=pathlib.Path, help="checkpoint to write (.pt)")
-    p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
+    p.add_argument("--seed", type=integer, default=0, help="training seed (default 0)")
     p.add_argument("--data", type=pathlib.Path, default=pathlib.Path("data/train"),
                    help="folder of training scenes; generated when missing (default "
                         "data/train)")
-    p.add_argument("--scenes", type=int, default=400,
+    p.add_argument("--scenes", type=positive_int, default=400,
                    help="training scenes to generate when --data is missing (default 400)")
-    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+    p.add_argument("--jobs", type=positive_int, default=os.cpu_count() or 1,
                    help="processes generating scenes (default: one per core)")
-    p.add_argument("--frames", type=int, default=60, help="frames per scene (default 60)")
-    p.add_argument("--pretrain-steps", type=int, default=8000,
+    p.add_argument("--frames", type=positive_int, default=60, help="frames per scene (default 60)")
+    p.add_argument("--pretrain-steps", type=non_negative_int, default=8000,
                    help="backbone pretraining steps on depth and object classes, the stand-in "
                         "for ImageNet weights (default 8000; 0 skips it)")
-    p.add_argument("--steps", type=int, default=16000,
+    p.add_argument("--steps", type=positive_int, default=16000,
                    help="PARQ training steps with the paper's objective (default 16000)")
-    p.add_argument("--batch", type=int, default=4, help="snippets per step (default 4)")
-    p.add_argument("--iterations", type=int, default=4,
+    p.add_argument("--batch", type=positive_int, default=4, help="snippets per step (default 4)")
+    p.add_argument("--iterations", type=positive_int, default=4,
                    help="recurrent iterations supervised per step (default 4)")
-    p.add_argument("--lr", type=float, default=5e-4, help="peak learning rate (default 5e-4)")
-    p.add_argument("--snapshot-every", type=int, default=2000,
+    p.add_argument("--lr", type=positive_float, default=5e-4, help="peak learning rate (default 5e-4)")
+    p.add_argument("--snapshot-every", type=non_negative_int, default=2000,
                    help="also write OUTPUT's stem + '-stepN.pt' every N training steps "
                         "(0: never; default 2000)")
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
+    p.add_argument("--threads", type=positive_int, default=None, help="torch threads (default: all)")
     return p
 
 
@@ -83,11 +85,6 @@ def run(args, argv) -> int:
     from . import data, pretrain, train
     from .symmetry import folds_of_class
 
-    for name in ("scenes", "frames", "steps", "batch", "iterations", "jobs"):
-        if getattr(args, name) < 1:
-            raise ParqError(f"--{name} must be at least 1")
-    if args.pretrain_steps < 0:
-        raise ParqError("--pretrain-steps must not be negative")
     if args.threads:
         torch.set_num_threads(args.threads)
     config = demo_config(iterations=args.iterations)
@@ -101,8 +98,6 @@ def run(args, argv) -> int:
     snippets = data.load_scenes(args.data, config, log=log)
     model = train.new_model(config, args.seed, snippets)
     folders = sorted(p.parent for p in args.data.glob("*/boxes.json"))
-    if args.snapshot_every < 0:
-        raise ParqError("--snapshot-every must not be negative")
     pre_history = pretrain.pretrain(model.backbone, config, folders, args.pretrain_steps,
                                     args.seed, log=log, log_every=500) \
         if args.pretrain_steps else []

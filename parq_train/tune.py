@@ -16,7 +16,6 @@ is fused and scored.  So the grid costs one detector pass, not one per candidate
 """
 from __future__ import annotations
 
-import argparse
 import json
 import pathlib
 import sys
@@ -25,6 +24,7 @@ import tempfile
 import numpy as np
 
 from parq_runtime import evaluation, geometry, readers, scene
+from parq_runtime.arguments import OneLineParser, positive_int
 from parq_runtime.errors import ParqError
 from parq_runtime.fusion import SceneFusion
 
@@ -90,13 +90,13 @@ def select(records: list, classes, thresholds=THRESHOLDS, regions=REGIONS,
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = OneLineParser(prog="python -m parq_train.tune", description=__doc__.splitlines()[0])
     p.add_argument("checkpoint", type=pathlib.Path, help="trained checkpoint (parq-train)")
     p.add_argument("--data", type=pathlib.Path, default=pathlib.Path("data/val"),
                    help="validation scenes (default data/val: parq-synth seed 2000)")
-    p.add_argument("--scenes", type=int, default=40, help="validation scenes used (default 40)")
-    p.add_argument("--iters", type=int, default=2, help="iterations (default 2, parq-run's)")
-    p.add_argument("--queries", type=int, default=32, help="queries (default 32, parq-run's)")
+    p.add_argument("--scenes", type=positive_int, default=40, help="validation scenes used (default 40)")
+    p.add_argument("--iters", type=positive_int, default=2, help="iterations (default 2, parq-run's)")
+    p.add_argument("--queries", type=positive_int, default=32, help="queries (default 32, parq-run's)")
     p.add_argument("-o", "--output", type=pathlib.Path, required=True,
                    help="checkpoint to write with the chosen post-processing")
     args = p.parse_args(argv)
