@@ -9,12 +9,12 @@ import sys
 
 from .arguments import OneLineParser, non_negative_float, positive_int, score
 from .errors import ParqError
-from .fusion import MODES
 
 DEFAULT_MODEL = pathlib.Path(__file__).resolve().parents[1] / "models" / "parq-demo"
 
 
 def parser() -> argparse.ArgumentParser:
+    from .fusion import MODES
     from .gravity import CHOICES
     from .readers import FORMATS
 
