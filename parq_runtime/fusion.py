@@ -43,6 +43,11 @@ class _Cluster:
     def best(self) -> int:
         return max(range(len(self.members)), key=lambda i: self.members[i].score)
 
+    @property
+    def support(self) -> int:
+        """Distinct snippets among the members."""
+        return len(set(self.snippets))
+
 
 @dataclass
 class SceneFusion:
@@ -97,7 +102,7 @@ class SceneFusion:
                        corners=geometry.box_corners(center, size, best.rotation))
 
     def _kept(self) -> list:
-        return [c for c in self.clusters if len(set(c.snippets)) >= self.min_support]
+        return [c for c in self.clusters if c.support >= self.min_support]
 
     @property
     def boxes(self) -> list:
@@ -110,7 +115,7 @@ class SceneFusion:
     @property
     def supports(self) -> list:
         """How many snippets detected each of ``boxes``."""
-        return [len(set(c.snippets)) for c in self._kept()]
+        return [c.support for c in self._kept()]
 
 
 def fuse(snippet_detections: list, iou_threshold: float = MATCH_IOU, up=geometry.UP_Z,

@@ -35,8 +35,8 @@ REGIONS = ((-1.5, 1.5, 0.0, 2.0), (-2.0, 2.0, 0.0, 3.0), (-2.5, 2.5, 0.0, 3.5),
 # (mode, min_support); the first is the authors'.  No support above 2: it would hide every
 # object that a short capture shows in fewer snippets (3 snippets are 9 keyframes).
 FUSIONS = (("best", 1), ("best", 2), ("mean", 1), ("mean", 2))
-AUTHORS = {"score_threshold": 0.8, "eval_region": list(REGIONS[0]), "fusion": "best",
-           "min_support": 1}
+AUTHORS = {"score_threshold": 0.8, "eval_region": list(REGIONS[0]), "fusion": FUSIONS[0][0],
+           "min_support": FUSIONS[0][1]}
 
 
 def run_once(detector, folders, iters: int, queries: int) -> list:
