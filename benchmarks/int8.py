@@ -14,6 +14,7 @@ Writes results/int8.{md,json}.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import pathlib
 import sys
@@ -27,8 +28,6 @@ import tradeoff
 
 def export_pair(checkpoint, name: str, calibration) -> tuple:
     from parq_export.export import export
-
-    import hashlib
 
     digest = hashlib.sha256(pathlib.Path(checkpoint).read_bytes()).hexdigest()
     paths = []

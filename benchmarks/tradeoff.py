@@ -4,7 +4,8 @@ Generates --scenes scenes with parq-synth seed 3000 (training used seed 1000, va
 so no scene is shared), runs parq-run's pipeline (keyframes, 3-view snippets, scene fusion) at
 iterations 1, 2, 4, 8 x queries 16, 32, 64, 128 and the learned count, and reports scene-level
 F1 at IoU 0.25 / 0.5 / 0.7 (parq-eval's protocol, pooled over scenes) and the median latency per
-snippet (reading its frames included, after one warm-up pass over the scenes).  Writes results/tradeoff.{md,csv,json,png}.
+snippet (reading its frames included, after one warm-up pass over the scenes).  Writes
+results/tradeoff.{md,csv,json,png}.
 
     python benchmarks/tradeoff.py [--model models/parq-demo] [--scenes 40]
 """

@@ -23,9 +23,8 @@ import onnx
 import onnxscript.optimizer
 import torch
 
-from parq_runtime import __version__
+from parq_runtime import __version__, files
 from parq_runtime.errors import ParqError
-from parq_runtime import files
 from parq_runtime.model_card import CARD_FORMAT, CARD_VERSION, METADATA_KEY
 
 from . import checkpoint as ckpt
