@@ -174,15 +174,13 @@ def quantize_int8(model: PARQ, base: onnx.ModelProto, card: dict, folder: pathli
     """Replace folder/backbone.onnx by its int8 version; returns the card's record of it.
     The quantizer works on the graph before the operands branch is added (it cannot follow
     names into If subgraphs), then the branch is added to its output."""
-    from parq_synth import generate
-
     from . import quantize
 
     with tempfile.TemporaryDirectory() as tmp:
         scenes = calibration
         if scenes is None:
-            scenes = pathlib.Path(tmp) / "calibration"
-            generate(scenes, 8, 5000, frames=30, size=tuple(model.config.image_size))
+            scenes = quantize.generate_calibration(pathlib.Path(tmp) / "calibration",
+                                                   model.config.image_size)
         feeds = quantize.calibration_feeds(scenes, model.config)
         fp32 = pathlib.Path(tmp) / "backbone_fp32.onnx"
         onnx.save(base, fp32)
@@ -199,7 +197,8 @@ def quantize_int8(model: PARQ, base: onnx.ModelProto, card: dict, folder: pathli
     return {"backbone": "int8 weights (per channel, 7-bit range) and uint8 activations, QDQ, "
                         "convolutions only", "calibration_snippets": len(feeds),
             "calibration_scenes": str(calibration) if calibration else
-            "8 parq-synth scenes, seed 5000, 30 frames", **errors}
+            "{scenes} parq-synth scenes, seed {seed}, {frames} frames".format(
+                **quantize.CALIBRATION), **errors}
 
 
 def _file_sha256(path) -> str:
@@ -214,7 +213,7 @@ def export(checkpoint_path, out_dir, opset: int = DEFAULT_OPSET, check: bool = T
 
     quantize="int8": after the fp32 graphs pass the check, backbone.onnx's convolutions are
     quantized (see parq_export.quantize), calibrated on the generated scenes in ``calibration``
-    (default: 8 scenes generated here, parq-synth seed 5000)."""
+    (default: quantize.CALIBRATION, scenes generated here)."""
     if quantize not in (None, "int8"):
         raise ParqError(f"--quantize {quantize}: only int8 is supported")
     source = pathlib.Path(checkpoint_path)

@@ -20,6 +20,19 @@ from parq_runtime.detector import snippet_inputs
 from parq_runtime.errors import ParqError
 from parq_runtime.readers import open_capture
 
+# The default calibration set: parq-synth scenes no training, tuning or benchmark uses.
+CALIBRATION = {"scenes": 8, "seed": 5000, "frames": 30}
+
+
+def generate_calibration(folder, size) -> pathlib.Path:
+    """Write the default calibration scenes (CALIBRATION) at ``size`` = (w, h) into
+    ``folder``."""
+    from parq_synth import generate
+
+    generate(folder, CALIBRATION["scenes"], CALIBRATION["seed"], frames=CALIBRATION["frames"],
+             size=tuple(size), overwrite=True)
+    return pathlib.Path(folder)
+
 
 def calibration_feeds(scenes_dir, card_config, views: int = 3, limit: int = 48) -> list:
     """Backbone inputs for ``limit`` snippets of the generated scenes under ``scenes_dir``."""
