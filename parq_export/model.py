@@ -82,7 +82,8 @@ class PARQ(nn.Module):
         ``reference`` (B, K, 3): the point the iteration started from, metres.
 
         form: ``reference`` recomputes the cross-attention keys and values at every iteration
-        (the authors' way); ``cached`` projects them once; ``folded`` never projects the memory.
+        (the authors' way); ``cached`` projects them once; ``folded`` never projects the memory;
+        ``fused`` is ``cached`` with torch's fused attention kernel (training).
         """
         iterations = self.config.iterations if iterations is None else iterations
         memory = self.memory(self.image_features(images), camera, T_local_camera)
@@ -95,7 +96,8 @@ class PARQ(nn.Module):
         tokens = memory.flatten(1, 3)                                  # (B, S, C)
         operands = None
         if form != "reference":
-            operands = self.layer.attention_operands(tokens, cached=(form == "cached"))
+            operands = self.layer.attention_operands(tokens, cached=(form != "folded"),
+                                                     fused=(form == "fused"))
         outputs = []
         for _ in range(iterations):
             points = denormalize_points(ref, self.config.decoder_scale)

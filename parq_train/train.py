@@ -97,23 +97,27 @@ def new_model(config, seed: int, snippets=None) -> PARQ:
 
 def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_size: int = 4,
           lr: float = 4e-4, iterations: int = 4, log=print, log_every: int = 50,
-          model: PARQ | None = None, snapshot=None, snapshot_every: int = 0) -> tuple:
+          model: PARQ | None = None, snapshot=None, snapshot_every: int = 0,
+          backbone_lr: float = 1.0) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
 
     ``snapshot(model, step)``, if given, is called every ``snapshot_every`` steps with a
     copy of the model in evaluation form (frozen norms), so a long run leaves usable
-    checkpoints behind it."""
+    checkpoints behind it.  ``backbone_lr`` scales the learning rate of the ResNet-FPN (the
+    pretrained part) against the rest."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     if model is None:
         model = new_model(config, seed, snippets)
     model.train()
-    decay, no_decay = [], []
+    groups = {}
     for name, p in model.named_parameters():
-        (no_decay if p.dim() < 2 or name.startswith("refpoint") else decay).append(p)
-    optimizer = torch.optim.AdamW([{"params": decay, "weight_decay": 1e-4},
-                                   {"params": no_decay, "weight_decay": 0.0}], lr=lr)
+        scale = backbone_lr if name.startswith("backbone.") else 1.0
+        decay = 0.0 if p.dim() < 2 or name.startswith("refpoint") else 1e-4
+        groups.setdefault((scale, decay), []).append(p)
+    optimizer = torch.optim.AdamW([{"params": params, "weight_decay": decay, "scale": scale}
+                                   for (scale, decay), params in groups.items()], lr=lr)
     folds = torch.as_tensor(folds_of_class)
     history = []
     order = []
@@ -125,9 +129,10 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
         batch = [snippets[i] for i in order[:batch_size]]
         del order[:batch_size]
         for group in optimizer.param_groups:
-            group["lr"] = learning_rate(step, steps, lr, warmup=min(500, steps // 10))
+            group["lr"] = group["scale"] * learning_rate(step, steps, lr,
+                                                         warmup=min(500, steps // 10))
         images, camera, T_local_camera, targets = to_batch(batch, rng)
-        outputs = model(images, camera, T_local_camera, iterations=iterations, form="cached")
+        outputs = model(images, camera, T_local_camera, iterations=iterations, form="fused")
         loss, parts = total_loss(outputs, targets, folds, len(config.classes))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()

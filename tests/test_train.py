@@ -118,3 +118,47 @@ def test_training_is_deterministic_for_a_seed():
     a, b, c = weights(0), weights(0), weights(1)
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert not all(torch.equal(a[k], c[k]) for k in a)
+
+
+def test_fused_attention_form_matches_cached_in_outputs_and_gradients():
+    """Training uses torch's fused attention kernel (form "fused"); it must compute what the
+    cached form (checked against the authors' arithmetic in test_golden) computes."""
+    config = tiny_config(num_queries=16)
+    rng = np.random.default_rng(1)
+    camera, T_local_camera = verify.random_snippet(rng, 3, config)
+    w, h = config.image_size
+    images = torch.rand(1, 3, 3, h, w)
+    camera, T_local_camera = torch.from_numpy(camera)[None], torch.from_numpy(T_local_camera)[None]
+    model = PARQ(config)
+    results = {}
+    for form in ("cached", "fused"):
+        model.zero_grad()
+        outputs = model(images, camera, T_local_camera, iterations=2, form=form)
+        total = sum(o["center"].sum() + o["logits"].square().sum() for o in outputs)
+        total.backward()
+        results[form] = ([o[k].detach() for o in outputs for k in ("center", "size", "logits")],
+                         {n: p.grad.clone() for n, p in model.named_parameters()
+                          if p.grad is not None})
+    for a, b in zip(results["cached"][0], results["fused"][0]):
+        torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-5)
+    grads_cached, grads_fused = results["cached"][1], results["fused"][1]
+    assert set(grads_fused) == set(grads_cached)
+    assert "layer.decoder.multihead_attn.in_proj_weight" in grads_fused
+    for name in grads_cached:
+        torch.testing.assert_close(grads_fused[name], grads_cached[name], rtol=1e-4, atol=1e-5)
+
+
+def test_backbone_learning_rate_scale_zero_freezes_only_the_backbone():
+    config = tiny_config(num_queries=16)
+    torch.manual_seed(0)
+    model = train.swap_norms(PARQ(config), to_trainable=True)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    trained, _ = train.train(config, tiny_snippets(config), steps=3, seed=0,
+                             folds_of_class=[1] * 9, batch_size=2, iterations=2, lr=2e-3,
+                             log=lambda *_: None, model=model, backbone_lr=0.0)
+    after = trained.state_dict()
+    weights = [k for k in before if k.startswith("backbone.") and k.endswith("weight")
+               and "bn" not in k]
+    assert weights and all(torch.equal(after[k], before[k]) for k in weights)
+    assert not torch.equal(after["layer.decoder.linear1.weight"],
+                           before["layer.decoder.linear1.weight"])
