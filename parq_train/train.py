@@ -98,14 +98,16 @@ def new_model(config, seed: int, snippets=None) -> PARQ:
 def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_size: int = 4,
           lr: float = 4e-4, iterations: int = 4, log=print, log_every: int = 50,
           model: PARQ | None = None, snapshot=None, snapshot_every: int = 0,
-          backbone_lr: float = 1.0) -> tuple:
+          backbone_lr: float = 1.0, form: str = "cached") -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
 
     ``snapshot(model, step)``, if given, is called every ``snapshot_every`` steps with a
     copy of the model in evaluation form (frozen norms), so a long run leaves usable
     checkpoints behind it.  ``backbone_lr`` scales the learning rate of the ResNet-FPN (the
-    pretrained part) against the rest."""
+    pretrained part) against the rest.  ``form`` is the attention form of PARQ.forward: the
+    default ``cached`` is what trained the shipped demo; ``fused`` computes the same in another
+    rounding order, faster."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     if model is None:
@@ -132,7 +134,7 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
             group["lr"] = group["scale"] * learning_rate(step, steps, lr,
                                                          warmup=min(500, steps // 10))
         images, camera, T_local_camera, targets = to_batch(batch, rng)
-        outputs = model(images, camera, T_local_camera, iterations=iterations, form="fused")
+        outputs = model(images, camera, T_local_camera, iterations=iterations, form=form)
         loss, parts = total_loss(outputs, targets, folds, len(config.classes))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
