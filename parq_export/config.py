@@ -87,12 +87,9 @@ class PARQConfig:
             # P2 (stride 4) must be exactly (w/4, h/4) for the camera scaling to hold.
             problems.append(f"image_size {self.image_size}: width and height must be "
                             "multiples of 4, at least 32")
-        from parq_runtime.fusion import MODES
+        from parq_runtime import fusion
 
-        if self.fusion not in MODES:
-            problems.append(f"fusion {self.fusion!r} must be one of {', '.join(MODES)}")
-        if not isinstance(self.min_support, int) or self.min_support < 1:
-            problems.append(f"min_support {self.min_support!r} must be an integer >= 1")
+        problems += fusion.problems(self.fusion, self.min_support)
         if not 0 < self.ray_depth[0] < self.ray_depth[1]:
             problems.append(f"ray_depth {self.ray_depth} must be 0 < near < far")
         if problems:

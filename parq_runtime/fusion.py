@@ -33,6 +33,17 @@ MATCH_IOU = 0.1
 MODES = ("best", "mean")
 
 
+def problems(mode, min_support) -> list:
+    """What is wrong with a fusion mode and minimum support (empty when both are valid);
+    SceneFusion and the exporter's PARQConfig both check with it."""
+    found = []
+    if mode not in MODES:
+        found.append(f"fusion mode {mode!r} must be one of {', '.join(MODES)}")
+    if isinstance(min_support, bool) or not isinstance(min_support, int) or min_support < 1:
+        found.append(f"fusion min_support {min_support!r} must be an integer >= 1")
+    return found
+
+
 @dataclass
 class _Cluster:
     members: list        # Box, in the order added
@@ -62,12 +73,9 @@ class SceneFusion:
     clusters: list = field(default_factory=list)
 
     def __post_init__(self):
-        if self.mode not in MODES:
-            raise ParqError(f"fusion mode must be one of {', '.join(MODES)}, got {self.mode!r}")
-        if isinstance(self.min_support, bool) or not isinstance(self.min_support, int) \
-                or self.min_support < 1:
-            raise ParqError(f"fusion min_support must be an integer >= 1, got "
-                            f"{self.min_support!r}")
+        found = problems(self.mode, self.min_support)
+        if found:
+            raise ParqError("; ".join(found))
 
     def add(self, detections: list, snippet: int = -1) -> list:
         """Fuse one snippet's detections; returns the cluster index each detection went to."""
