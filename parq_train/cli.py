@@ -50,7 +50,8 @@ def parser() -> argparse.ArgumentParser:
                    help="training scenes to generate when --data is missing (default 400)")
     p.add_argument("--jobs", type=positive_int, default=os.cpu_count() or 1,
                    help="processes generating scenes (default: one per core)")
-    p.add_argument("--frames", type=positive_int, default=60, help="frames per scene (default 60)")
+    p.add_argument("--frames", type=positive_int, default=60,
+                   help="frames per scene (default 60)")
     p.add_argument("--pretrain-steps", type=non_negative_int, default=8000,
                    help="backbone pretraining steps on depth and object classes, the stand-in "
                         "for ImageNet weights (default 8000; 0 skips it)")
@@ -59,7 +60,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=positive_int, default=4, help="snippets per step (default 4)")
     p.add_argument("--iterations", type=positive_int, default=4,
                    help="recurrent iterations supervised per step (default 4)")
-    p.add_argument("--lr", type=positive_float, default=5e-4, help="peak learning rate (default 5e-4)")
+    p.add_argument("--lr", type=positive_float, default=5e-4,
+                   help="peak learning rate (default 5e-4)")
     p.add_argument("--backbone-lr", type=non_negative_float, default=1.0,
                    help="the pretrained ResNet-FPN's learning rate as a fraction of --lr "
                         "(default 1.0; 0.1 trained worse, see the README)")
@@ -71,7 +73,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--snapshot-every", type=non_negative_int, default=2000,
                    help="also write OUTPUT's stem + '-stepN.pt' every N training steps "
                         "(0: never; default 2000)")
-    p.add_argument("--threads", type=positive_int, default=None, help="torch threads (default: all)")
+    p.add_argument("--threads", type=positive_int, default=None,
+                   help="torch threads (default: all)")
     return p
 
 
@@ -95,6 +98,7 @@ def run(args, argv) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
+    form = "fused" if args.fused_attention else "cached"   # PARQ.forward's attention form
     config = demo_config(iterations=args.iterations)
     start = time.perf_counter()
     if not args.data.is_dir() or not any(args.data.glob("*/boxes.json")):
@@ -120,8 +124,7 @@ def run(args, argv) -> int:
                                  iterations=args.iterations, lr=args.lr, log=log,
                                  log_every=250, model=model, snapshot=snapshot,
                                  snapshot_every=args.snapshot_every,
-                                 backbone_lr=args.backbone_lr,
-                                 form="fused" if args.fused_attention else "cached")
+                                 backbone_lr=args.backbone_lr, form=form)
     trained = time.perf_counter() - start - generated - pretrained
     record = {"command": "parq-train " + " ".join(argv), "seed": args.seed,
               "data": {"generator": "parq-synth", "seed": TRAIN_SEED, "scenes": len(folders),
@@ -129,7 +132,7 @@ def run(args, argv) -> int:
                        "snippets": len(snippets)},
               "pretrain_steps": args.pretrain_steps, "steps": args.steps, "batch": args.batch,
               "iterations": args.iterations, "lr": args.lr, "backbone_lr": args.backbone_lr,
-              "attention": "fused" if args.fused_attention else "cached",
+              "attention": form,
               "threads": torch.get_num_threads(),
               "minutes": {"generate": round(generated / 60, 1),
                           "pretrain": round(pretrained / 60, 1), "train": round(trained / 60, 1)},

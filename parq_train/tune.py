@@ -94,9 +94,12 @@ def main(argv=None) -> int:
     p.add_argument("checkpoint", type=pathlib.Path, help="trained checkpoint (parq-train)")
     p.add_argument("--data", type=pathlib.Path, default=pathlib.Path("data/val"),
                    help="validation scenes (default data/val: parq-synth seed 2000)")
-    p.add_argument("--scenes", type=positive_int, default=40, help="validation scenes used (default 40)")
-    p.add_argument("--iters", type=positive_int, default=2, help="iterations (default 2, parq-run's)")
-    p.add_argument("--queries", type=positive_int, default=32, help="queries (default 32, parq-run's)")
+    p.add_argument("--scenes", type=positive_int, default=40,
+                   help="validation scenes used (default 40)")
+    p.add_argument("--iters", type=positive_int, default=2,
+                   help="iterations (default 2, parq-run's)")
+    p.add_argument("--queries", type=positive_int, default=32,
+                   help="queries (default 32, parq-run's)")
     p.add_argument("-o", "--output", type=pathlib.Path, required=True,
                    help="checkpoint to write with the chosen post-processing")
     args = p.parse_args(argv)
