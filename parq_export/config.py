@@ -14,6 +14,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+from parq_runtime import fusion as scene_fusion  # not `fusion`: a field below has that name
+
 # Class names of the authors' ScanNet (Scan2CAD) release, in label order; label 9 is no-object.
 SCANNET_CLASSES = ("chair", "table", "cabinet", "trash bin", "bookshelf", "display", "sofa",
                    "bathtub", "other")
@@ -63,8 +65,8 @@ class PARQConfig:
     score_threshold: float = 0.8      # the authors' evaluation threshold
     nms_iou: float = 0.1              # class-agnostic NMS on axis-aligned bounds
     eval_region: tuple = (-1.5, 1.5, 0.0, 2.0)  # kept centers: local x in (a, b), z in (c, d)
-    fusion: str = "best"              # scene fusion (parq_runtime.fusion): the authors' "best"
-    min_support: int = 1              # snippets that must see a scene box (1: the authors')
+    fusion: str = scene_fusion.AUTHORS_MODE     # scene fusion (parq_runtime.fusion)
+    min_support: int = scene_fusion.AUTHORS_MIN_SUPPORT  # snippets that must see a box
     extra: dict = field(default_factory=dict, compare=False)  # free-form provenance
 
     feature_stride = 4  # FPN level P2; every level is resized to it
@@ -87,9 +89,7 @@ class PARQConfig:
             # P2 (stride 4) must be exactly (w/4, h/4) for the camera scaling to hold.
             problems.append(f"image_size {self.image_size}: width and height must be "
                             "multiples of 4, at least 32")
-        from parq_runtime import fusion
-
-        problems += fusion.problems(self.fusion, self.min_support)
+        problems += scene_fusion.problems(self.fusion, self.min_support)
         if not 0 < self.ray_depth[0] < self.ray_depth[1]:
             problems.append(f"ray_depth {self.ray_depth} must be 0 < near < far")
         if problems:

@@ -31,6 +31,9 @@ from .iou import iou_matrix
 
 MATCH_IOU = 0.1
 MODES = ("best", "mean")
+# The authors' fusion: the best-scoring member stands for its cluster, every cluster kept.
+AUTHORS_MODE = "best"
+AUTHORS_MIN_SUPPORT = 1
 
 
 def problems(mode, min_support) -> list:
@@ -68,8 +71,8 @@ class SceneFusion:
 
     iou_threshold: float = MATCH_IOU
     up: tuple = geometry.UP_Z
-    mode: str = "best"
-    min_support: int = 1
+    mode: str = AUTHORS_MODE
+    min_support: int = AUTHORS_MIN_SUPPORT
     clusters: list = field(default_factory=list)
 
     def __post_init__(self):
@@ -127,7 +130,7 @@ class SceneFusion:
 
 
 def fuse(snippet_detections: list, iou_threshold: float = MATCH_IOU, up=geometry.UP_Z,
-         mode: str = "best", min_support: int = 1) -> SceneFusion:
+         mode: str = AUTHORS_MODE, min_support: int = AUTHORS_MIN_SUPPORT) -> SceneFusion:
     fusion = SceneFusion(iou_threshold, tuple(np.asarray(up, dtype=float)), mode, min_support)
     for i, dets in enumerate(snippet_detections):
         fusion.add(dets, i)

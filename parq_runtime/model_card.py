@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import fusion
 from .errors import ParqError
 
 CARD_FORMAT = "parq-onnx-model"
@@ -83,12 +84,12 @@ class ModelCard:
 
     @property
     def fusion(self) -> str:
-        """Scene fusion mode; cards written before it was recorded use the authors' "best"."""
-        return str(self.raw["postprocess"].get("fusion", "best"))
+        """Scene fusion mode; cards written before it was recorded use the authors'."""
+        return str(self.raw["postprocess"].get("fusion", fusion.AUTHORS_MODE))
 
     @property
     def min_support(self) -> int:
-        return int(self.raw["postprocess"].get("min_support", 1))
+        return int(self.raw["postprocess"].get("min_support", fusion.AUTHORS_MIN_SUPPORT))
 
     @property
     def max_views(self) -> int:

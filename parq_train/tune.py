@@ -26,7 +26,7 @@ import numpy as np
 from parq_runtime import evaluation, geometry, readers, scene
 from parq_runtime.arguments import OneLineParser, positive_int
 from parq_runtime.errors import ParqError
-from parq_runtime.fusion import SceneFusion
+from parq_runtime.fusion import AUTHORS_MIN_SUPPORT, AUTHORS_MODE, SceneFusion
 
 THRESHOLDS = tuple(np.round(np.arange(0.3, 0.951, 0.05), 2))
 # (xmin, xmax, zmin, zmax) in the snippet frame; the first is the authors'.
@@ -34,7 +34,7 @@ REGIONS = ((-1.5, 1.5, 0.0, 2.0), (-2.0, 2.0, 0.0, 3.0), (-2.5, 2.5, 0.0, 3.5),
            (-3.0, 3.0, 0.0, 4.5), (-10.0, 10.0, -10.0, 10.0))
 # (mode, min_support); the first is the authors'.  No support above 2: it would hide every
 # object that a short capture shows in fewer snippets (3 snippets are 9 keyframes).
-FUSIONS = (("best", 1), ("best", 2), ("mean", 1), ("mean", 2))
+FUSIONS = ((AUTHORS_MODE, AUTHORS_MIN_SUPPORT), ("best", 2), ("mean", 1), ("mean", 2))
 AUTHORS = {"score_threshold": 0.8, "eval_region": list(REGIONS[0]), "fusion": FUSIONS[0][0],
            "min_support": FUSIONS[0][1]}
 
@@ -57,8 +57,8 @@ def run_once(detector, folders, iters: int, queries: int) -> list:
     return out
 
 
-def score(records: list, threshold: float, region, classes, fusion: str = "best",
-          min_support: int = 1) -> dict:
+def score(records: list, threshold: float, region, classes, fusion: str = AUTHORS_MODE,
+          min_support: int = AUTHORS_MIN_SUPPORT) -> dict:
     """parq-eval metrics of the scenes fused with ``fusion`` and ``min_support`` when snippets
     keep boxes scoring above ``threshold`` whose local centers lie in ``region``."""
     pairs = []
