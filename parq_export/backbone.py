@@ -162,10 +162,19 @@ class ResNetFPN(nn.Module):
         self.register_buffer("pixel_std", torch.tensor(pixel_std).reshape(1, 3, 1, 1),
                              persistent=False)
 
+    def levels(self, images: torch.Tensor) -> list:
+        """(B, 3, H, W) -> the FPN outputs P2..P5, (B, fpn_channels, H / 2^(l+2), W / 2^(l+2))
+        (sizes rounded up), before any resizing."""
+        return self.fpn(self.body((images - self.pixel_mean) / self.pixel_std))
+
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        x = (images - self.pixel_mean) / self.pixel_std
-        levels = self.fpn(self.body(x))
-        size = levels[0].shape[-2:]
-        levels = [levels[0]] + [F.interpolate(p, size=size, mode="bilinear", align_corners=False)
-                                for p in levels[1:]]
-        return torch.cat(levels, dim=1)
+        return concat_levels(self.levels(images))
+
+
+def concat_levels(levels: list) -> torch.Tensor:
+    """P2..P5 -> (B, 4 * F, h, w): each level resized to P2's size (bilinear,
+    align_corners=False) and concatenated along channels."""
+    size = levels[0].shape[-2:]
+    levels = [levels[0]] + [F.interpolate(p, size=size, mode="bilinear", align_corners=False)
+                            for p in levels[1:]]
+    return torch.cat(levels, dim=1)

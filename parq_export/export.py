@@ -24,13 +24,16 @@ import onnxscript.optimizer
 import torch
 
 from parq_runtime import __version__, files
+from parq_runtime.model_card import level_sizes
 from parq_runtime.errors import ParqError
 from parq_runtime.model_card import CARD_FORMAT, CARD_VERSION, METADATA_KEY
 
 from . import checkpoint as ckpt
 from . import verify
-from .graphs import (BACKBONE_INPUTS, BACKBONE_OUTPUTS, LAYER_INPUTS, LAYER_OUTPUTS,
-                     OPERAND_NAMES, BackboneGraph, LayerGraph, add_operands_branch)
+from . import factored
+from .graphs import (BACKBONE_INPUTS, BACKBONE_OUTPUTS, CACHED_LEVELS, FACTOR_NAMES,
+                     LAYER_INPUTS, LAYER_OUTPUTS, OPERAND_NAMES, BackboneGraph, CachedOperands,
+                     LayerGraph, add_operands_branch, join_layer_forms)
 from .model import PARQ
 
 DEFAULT_OPSET = 18
@@ -63,12 +66,20 @@ def fold_weights(proto: onnx.ModelProto) -> onnx.ModelProto:
                                          input_size_limit=1 << 26, output_size_limit=1 << 26)
 
 
-def export_backbone(model: PARQ, path: pathlib.Path, opset: int) -> onnx.ModelProto:
+def _factor_examples(model: PARQ, views: int) -> list:
+    """Zero tensors shaped like backbone.onnx's factor outputs for ``views`` views."""
+    c = model.config
+    sizes = level_sizes(c.feature_size)
+    (h, w) = sizes[0]
+    return ([torch.zeros(views, hl, wl, c.fpn_channels) for hl, wl in sizes]
+            + [torch.zeros(views, h, w, c.feature_dim)])
+
+
+def export_backbone(model: PARQ, opset: int) -> onnx.ModelProto:
+    """backbone.onnx without its keys-and-values branch (``add_operands_branch``)."""
     c = model.config
     w, h = c.image_size
-    fw, fh = c.feature_size
-    example = (torch.zeros(2, h, w, 3, dtype=torch.uint8),
-               torch.zeros(1, c.feature_dim, fh, fw),
+    example = (torch.zeros(2, h, w, 3, dtype=torch.uint8), *_factor_examples(model, 1)[:4],
                torch.ones(3, 4), torch.eye(4).repeat(3, 1, 1))
     new = torch.export.Dim("new_views", min=0, max=MAX_VIEWS)
     old = torch.export.Dim("cached_views", min=0, max=MAX_VIEWS)
@@ -76,34 +87,45 @@ def export_backbone(model: PARQ, path: pathlib.Path, opset: int) -> onnx.ModelPr
     program = _quiet_export(
         BackboneGraph(model).eval(), example, dynamo=True, opset_version=opset,
         input_names=list(BACKBONE_INPUTS), output_names=list(BACKBONE_OUTPUTS),
-        dynamic_shapes={"images": {0: new}, "cached_features": {0: old},
+        dynamic_shapes={"images": {0: new}, **{n: {0: old} for n in CACHED_LEVELS},
                         "camera": {0: auto}, "T_local_camera": {0: auto}},
         optimize=True, verify=False)
     return fold_weights(program.model_proto)
 
 
-def export_layer(model: PARQ, path: pathlib.Path, opset: int) -> onnx.ModelProto:
+def export_cached_operands(model: PARQ, opset: int) -> onnx.ModelProto:
+    views = torch.export.Dim("views", min=1, max=MAX_VIEWS)
+    program = _quiet_export(
+        CachedOperands(model).eval(), tuple(_factor_examples(model, 3)), dynamo=True,
+        opset_version=opset, input_names=list(FACTOR_NAMES), output_names=list(OPERAND_NAMES),
+        dynamic_shapes={n: {0: views} for n in FACTOR_NAMES}, optimize=True, verify=False)
+    return fold_weights(program.model_proto)
+
+
+def export_layer(model: PARQ, opset: int) -> onnx.ModelProto:
+    """layer.onnx: both forms of the layer, joined under If(key_value)."""
     c = model.config
     C, H = c.feature_dim, c.heads
-    d = C // H
     S = 3 * c.feature_size[0] * c.feature_size[1]
     K = c.num_queries
-    example = (torch.zeros(K, C), torch.full((K, 3), 0.5), torch.zeros(H, S, d),
-               torch.zeros(H, S, d), torch.eye(d).repeat(H, 1, 1), torch.eye(d).repeat(H, 1, 1),
-               torch.zeros(H, 1, d))
     queries = torch.export.Dim("queries", min=1, max=MAX_QUERIES)
-    heads = torch.export.Dim("operand_heads", min=1, max=H)
     tokens = torch.export.Dim("tokens", min=1)
-    width = torch.export.Dim("operand_width", min=1)
-    program = _quiet_export(
-        LayerGraph(model).eval(), example, dynamo=True, opset_version=opset,
-        input_names=list(LAYER_INPUTS), output_names=list(LAYER_OUTPUTS),
-        dynamic_shapes={"query_content": {0: queries}, "reference_points": {0: queries},
-                        "attention_keys": {0: heads, 1: tokens, 2: width},
-                        "attention_values": {0: heads, 1: tokens, 2: width},
-                        "key_map": {2: width}, "value_map": {1: width}, "value_bias": None},
-        optimize=True, verify=False)
-    return fold_weights(program.model_proto)
+    views = torch.export.Dim("views", min=1, max=MAX_VIEWS)
+    example = (torch.zeros(K, C), torch.zeros(K, C), torch.ones(K, 1), torch.full((K, 3), 0.5),
+               torch.zeros(H, S, C // H), torch.zeros(H, S, C // H),
+               *_factor_examples(model, 3))
+    dynamic = {"query_features": {0: queries}, "query_ray_hidden": {0: queries},
+               "query_weight": {0: queries}, "reference_points": {0: queries},
+               "attention_keys": {1: tokens}, "attention_values": {1: tokens},
+               **{n: {0: views} for n in FACTOR_NAMES}}
+    forms = {}
+    for form in ("cached", "folded"):
+        program = _quiet_export(
+            LayerGraph(model, form).eval(), example, dynamo=True, opset_version=opset,
+            input_names=list(LAYER_INPUTS), output_names=list(LAYER_OUTPUTS),
+            dynamic_shapes=dynamic, optimize=True, verify=False)
+        forms[form] = fold_weights(program.model_proto)
+    return join_layer_forms(forms["cached"], forms["folded"], model)
 
 
 def build_card(model: PARQ, checkpoint: ckpt.Checkpoint, source: pathlib.Path,
@@ -147,7 +169,7 @@ def build_card(model: PARQ, checkpoint: ckpt.Checkpoint, source: pathlib.Path,
         "graphs": {
             "backbone": {"file": "backbone.onnx", "inputs": list(BACKBONE_INPUTS) + ["key_value"],
                          "outputs": list(BACKBONE_OUTPUTS) + list(OPERAND_NAMES)},
-            "layer": {"file": "layer.onnx", "inputs": list(LAYER_INPUTS),
+            "layer": {"file": "layer.onnx", "inputs": list(LAYER_INPUTS) + ["key_value"],
                       "outputs": list(LAYER_OUTPUTS)},
         },
         "extra": dict(c.extra),
@@ -169,8 +191,8 @@ def _finish_graph(proto: onnx.ModelProto, card: dict, role: str, doc: str) -> on
     return proto
 
 
-def quantize_int8(model: PARQ, base: onnx.ModelProto, card: dict, folder: pathlib.Path,
-                  calibration, log) -> dict:
+def quantize_int8(model: PARQ, base: onnx.ModelProto, cached_operands: onnx.ModelProto,
+                  card: dict, folder: pathlib.Path, calibration, log) -> dict:
     """Replace folder/backbone.onnx by its int8 version; returns the card's record of it.
     The quantizer works on the graph before the operands branch is added (it cannot follow
     names into If subgraphs), then the branch is added to its output."""
@@ -187,7 +209,8 @@ def quantize_int8(model: PARQ, base: onnx.ModelProto, card: dict, folder: pathli
         int8 = pathlib.Path(tmp) / "backbone_int8.onnx"
         quantize.quantize_backbone(fp32, int8, [{k: v for k, v in f.items() if k != "key_value"}
                                                 for f in feeds])
-        proto = add_operands_branch(onnx.load(int8), model)
+        proto = add_operands_branch(onnx.load(int8), cached_operands, model,
+                                    card["opset"])
         onnx.save(_finish_graph(proto, card, "backbone",
                                 "PARQ backbone, int8 convolutions (QDQ, per-channel)"),
                   folder / "backbone.onnx")
@@ -238,9 +261,11 @@ def export(checkpoint_path, out_dir, opset: int = DEFAULT_OPSET, check: bool = T
     card = build_card(model, checkpoint, source, opset)
     with files.atomic_folder(out_dir, "the model folder") as tmp:
         with torch.no_grad():
-            backbone_base = export_backbone(model, tmp, opset)
-            backbone = add_operands_branch(copy.deepcopy(backbone_base), model)
-            layer = export_layer(model, tmp, opset)
+            backbone_base = export_backbone(model, opset)
+            cached_operands = export_cached_operands(model, opset)
+            backbone = add_operands_branch(copy.deepcopy(backbone_base), cached_operands,
+                                           model, opset)
+            layer = export_layer(model, opset)
         onnx.save(_finish_graph(backbone, card, "backbone",
                                 "PARQ backbone: images + cameras of one snippet -> memory and "
                                 "attention operands"), tmp / "backbone.onnx")
@@ -259,8 +284,8 @@ def export(checkpoint_path, out_dir, opset: int = DEFAULT_OPSET, check: bool = T
         card["verification"] = {k: {"max_abs_diff": d, "tolerance": t}
                                 for k, (d, t) in sorted(report.items())}
         if quantize:
-            card["quantization"] = quantize_int8(model, backbone_base, card, tmp, calibration,
-                                                 log)
+            card["quantization"] = quantize_int8(model, backbone_base, cached_operands, card,
+                                                 tmp, calibration, log)
         for role in ("backbone", "layer"):
             card["graphs"][role]["sha256"] = _file_sha256(tmp / card["graphs"][role]["file"])
         (tmp / "model.json").write_text(json.dumps(card, indent=1) + "\n")

@@ -1,24 +1,27 @@
-"""The two exported graphs as torch modules, and the per-snippet attention operands branch.
+"""The two exported graphs as torch modules.
+
+Neither graph forms the cross-attention's memory: they pass it in factored form, the FPN levels
+at their own resolution and the ray MLP's hidden layer (see ``parq_export.factored``).
 
 ``backbone.onnx`` (one snippet, everything the loop needs):
   inputs  images (Nn, H, W, 3) uint8 RGB at the network resolution, frames not encoded yet;
-          cached_features (Nc, C, h, w) float32, ``features`` of frames encoded by an earlier
-          call (streaming; Nc may be 0);
+          cached_level_0..3 (Nc, h_l, w_l, F) float32: ``level_l`` of frames encoded by an
+          earlier call (streaming; Nc may be 0);
           camera (N, 4) float32 (fx, fy, cx, cy) at feature resolution, N = Nc + Nn, in the
           order [cached frames..., new frames...];
           T_local_camera (N, 4, 4) float32;
-          key_value (bool scalar): true gives the cached form of the attention operands (keys
-          and values projected here, once per snippet), false the folded form (no projection).
-  outputs features (Nn, C, h, w): concatenated FPN levels of the new frames;
-          memory (N, h, w, C): features + ray encoding, the tokens of the cross-attention;
-          attention_keys, attention_values: (H, S, d) in the cached form; empty (0, 0, C) in
-          the folded form, where the memory itself, as (1, S, C), takes their place;
-          key_map (H, d, Dk), value_map (H, Dv, d), value_bias (H, 1, d): see
-          ``parq_export.layer``.
+          key_value (bool scalar): true projects the attention keys and values here, once per
+          snippet (the cached form); false leaves them empty (the folded form).
+  outputs level_0..3 (N, h_l, w_l, F): FPN levels P2..P5 of every view, cached ones first;
+          ray_hidden (N, h, w, C): the ray MLP's hidden layer;
+          attention_keys, attention_values: (H, S, d) in the cached form, (0, 0, d) in the
+          folded form.
 
 ``layer.onnx`` (one PARQ iteration, K queries):
-  inputs  query_content (K, C), reference_points (K, 3) normalised, attention_keys (Hk, S, Dk),
-          attention_values (Hk, S, Dv), key_map, value_map, value_bias;
+  inputs  query_features (K, C), query_ray_hidden (K, C), query_weight (K, 1): the query
+          content's factors (``parq_runtime.loop.sample_factors``); reference_points (K, 3)
+          normalised; attention_keys, attention_values; level_0..3, ray_hidden (the folded
+          form reads these; the cached form ignores them); key_value (bool scalar): the form;
   outputs center (K, 3), size (K, 3), ortho6d (K, 6), rotation (K, 3, 3), logits (K, C + 1),
           next_reference_points (K, 3).
 """
@@ -30,116 +33,138 @@ import torch
 from onnx import TensorProto, helper, numpy_helper
 from torch import nn
 
-from parq_runtime.loop import LAYER_OUTPUTS, OPERAND_NAMES
+from parq_runtime.model_card import level_sizes
+from parq_runtime.loop import FACTOR_NAMES, LAYER_OUTPUTS, OPERAND_NAMES, QUERY_NAMES
 
+from . import conditional, factored
 from .model import PARQ
 
-BACKBONE_INPUTS = ("images", "cached_features", "camera", "T_local_camera")
-BACKBONE_OUTPUTS = ("features", "memory")
-LAYER_INPUTS = ("query_content", "reference_points") + OPERAND_NAMES
+CACHED_LEVELS = tuple(f"cached_{n}" for n in FACTOR_NAMES[:-1])
+BACKBONE_INPUTS = ("images",) + CACHED_LEVELS + ("camera", "T_local_camera")
+BACKBONE_OUTPUTS = FACTOR_NAMES
+LAYER_INPUTS = QUERY_NAMES + ("reference_points",) + OPERAND_NAMES + FACTOR_NAMES
 
 
 class BackboneGraph(nn.Module):
-    """Image encoder + ray encoding for one snippet (the operands branch is added in ONNX)."""
+    """Image encoder + the ray MLP's hidden layer for one snippet (the keys and values are
+    added in ONNX, see :func:`add_operands_branch`)."""
 
     def __init__(self, model: PARQ):
         super().__init__()
         self.model = model
 
-    def forward(self, images, cached_features, camera, T_local_camera):
+    def forward(self, images, cached_level_0, cached_level_1, cached_level_2, cached_level_3,
+                camera, T_local_camera):
         x = images.permute(0, 3, 1, 2).to(torch.float32) / 255.0
-        features = self.model.backbone(x)
-        every = torch.cat([cached_features, features], 0)
-        # No batch axis here: indexing one out (x[0]) would export as a 59 MB Gather copy.
-        memory = every.permute(0, 2, 3, 1) + self.model.ray_encoder(camera, T_local_camera)
-        return features, memory
+        new = self.model.backbone.levels(x)
+        cached = (cached_level_0, cached_level_1, cached_level_2, cached_level_3)
+        levels = [torch.cat([old, p.permute(0, 2, 3, 1)], 0) for old, p in zip(cached, new)]
+        return (*levels, self.model.ray_encoder.hidden(camera, T_local_camera))
 
 
-class LayerGraph(nn.Module):
-    """One PARQ iteration on one snippet."""
+class CachedOperands(nn.Module):
+    """The cached form's keys and values (H, S, d), projected from the factors as
+    (1, S, C) @ (H, C, d) batched products, which write each head's block without a
+    transposed copy of the (S, C) result."""
 
     def __init__(self, model: PARQ):
         super().__init__()
-        self.layer = model.layer
+        self.model = model
 
-    def forward(self, query_content, reference_points, attention_keys, attention_values,
-                key_map, value_map, value_bias):
-        out = self.layer(query_content[None], reference_points[None],
-                         operands=(attention_keys[None], attention_values[None], key_map,
-                                   value_map, value_bias))
+    def forward(self, level_0, level_1, level_2, level_3, ray_hidden):
+        memory = factored.memory([level_0, level_1, level_2, level_3], ray_hidden,
+                                 self.model.ray_encoder.mlp[2])
+        attn = self.model.layer.decoder.multihead_attn
+        C = memory.shape[-1]
+        H = self.model.config.heads
+        tokens = memory.reshape(1, -1, C)
+        W = attn.in_proj_weight.reshape(3, H, C // H, C).transpose(-1, -2)   # (3, H, C, d)
+        b = attn.in_proj_bias.reshape(3, H, 1, C // H)
+        return tokens @ W[1] + b[1], tokens @ W[2] + b[2]
+
+
+class LayerGraph(nn.Module):
+    """One PARQ iteration on one snippet, in one form of the cross-attention: ``cached``
+    (attention_keys and attention_values) or ``folded`` (the factors)."""
+
+    def __init__(self, model: PARQ, form: str):
+        super().__init__()
+        self.layer = model.layer
+        self.ray_out = model.ray_encoder.mlp[2]
+        self.form = form
+        c = model.config
+        self.weights = factored.FactoredWeights(self.layer.decoder.multihead_attn, self.ray_out,
+                                                c.heads)
+        sizes = level_sizes(c.feature_size)
+        h, w = sizes[0]
+        self.resize = [(factored.resize_matrix(h, hl), factored.resize_matrix(w, wl))
+                       for hl, wl in sizes[1:]]
+        for i, (rows, cols) in enumerate(self.resize):
+            self.register_buffer(f"rows_{i}", rows, persistent=False)
+            self.register_buffer(f"cols_{i}", cols, persistent=False)
+
+    def forward(self, query_features, query_ray_hidden, query_weight, reference_points,
+                attention_keys, attention_values, level_0, level_1, level_2, level_3,
+                ray_hidden):
+        decoder = self.layer.decoder
+        H = decoder.heads
+
+        def attend(y):
+            K, C = y.shape[1:]
+            if self.form == "cached":
+                d = C // H
+                eye = torch.eye(d, dtype=y.dtype).expand(H, d, d)
+                return decoder.cross_attention(y, attention_keys[None], attention_values[None],
+                                               eye, eye, y.new_zeros(H, 1, d))
+            resize = [(getattr(self, f"rows_{i}"), getattr(self, f"cols_{i}"))
+                      for i in range(3)]
+            ctx = factored.folded_attention(decoder.cross_queries(y)[0],
+                                            [level_0, level_1, level_2, level_3], ray_hidden,
+                                            self.weights(), resize)
+            return decoder.multihead_attn.out_proj(ctx.transpose(0, 1).reshape(1, K, C))
+
+        content = factored.content(query_features, query_ray_hidden, query_weight,
+                                   self.ray_out)
+        out = self.layer(content[None], reference_points[None], attend=attend)
         return tuple(out[name][0] for name in LAYER_OUTPUTS)
 
 
-def operand_arrays(model: PARQ) -> dict:
-    """Cross-attention weights laid out per head: key_weight, value_weight (H, C, d) = W^T of
-    each head, key_map (H, d, C) = W_k of each head, key_bias, value_bias (H, 1, d)."""
-    attn = model.layer.decoder.multihead_attn
-    C = model.config.feature_dim
-    H = model.config.heads
-    d = C // H
-    W = attn.in_proj_weight.detach().numpy().astype(np.float32)
-    b = attn.in_proj_bias.detach().numpy().astype(np.float32)
-    return {
-        "key_weight": np.ascontiguousarray(W[C:2 * C].reshape(H, d, C).transpose(0, 2, 1)),
-        "value_weight": np.ascontiguousarray(W[2 * C:].reshape(H, d, C).transpose(0, 2, 1)),
-        "key_map": W[C:2 * C].reshape(H, d, C).copy(),
-        "key_bias": b[C:2 * C].reshape(H, 1, d).copy(),
-        "value_bias": b[2 * C:].reshape(H, 1, d).copy(),
-    }
+def empty_operands(model: PARQ, opset: int) -> onnx.ModelProto:
+    """The folded form's branch of backbone.onnx: empty keys and values, (0, 0, d)."""
+    d = model.config.feature_dim // model.config.heads
+    empty = numpy_helper.from_array(np.zeros((0, 0, d), np.float32), "empty")
+    graph = helper.make_graph(
+        [helper.make_node("Constant", [], ["keys"], value=empty),
+         helper.make_node("Identity", ["keys"], ["values"])], "folded_operands", [],
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, [0, 0, d])
+         for n in ("keys", "values")])
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
 
 
-def add_operands_branch(graph_model: onnx.ModelProto, model: PARQ) -> onnx.ModelProto:
-    """Append ``If(key_value)`` computing the attention operands from the ``memory`` output.
+def operand_infos(model: PARQ) -> list:
+    d = model.config.feature_dim // model.config.heads
+    return [helper.make_tensor_value_info(n, TensorProto.FLOAT, ["key_heads", "tokens", d])
+            for n in OPERAND_NAMES]
 
-    Cached branch: keys = memory W_k^T + b_k and values = memory W_v^T + b_v per head, as
-    (1, S, C) @ (H, C, d) batched products (no transposes); identity maps, zero value bias.
-    Folded branch: empty keys/values, key_map = W_k, value_map = W_v^T, value_bias = b_v.
-    """
-    C = model.config.feature_dim
-    H = model.config.heads
-    d = C // H
-    w = operand_arrays(model)
-    g = graph_model.graph
 
-    def init(name, array):
-        return numpy_helper.from_array(np.asarray(array), name)
+def add_operands_branch(backbone: onnx.ModelProto, cached: onnx.ModelProto, model: PARQ,
+                        opset: int) -> onnx.ModelProto:
+    """Append ``If(key_value)`` to backbone.onnx: the exported :class:`CachedOperands` when
+    true, :func:`empty_operands` when false."""
+    return conditional.add_if(backbone, "key_value", cached, empty_operands(model, opset),
+                              list(OPERAND_NAMES), operand_infos(model))
 
-    shapes = {"keys": ["operand_heads", "tokens", "operand_width"],
-              "values": ["operand_heads", "tokens", "operand_width"],
-              "key_map": [H, d, "operand_width"], "value_map": [H, "operand_width", d],
-              "value_bias": [H, 1, d]}
 
-    def out(name):
-        key = name.split("/")[-1].replace("attention_", "")
-        return helper.make_tensor_value_info(name, TensorProto.FLOAT, shapes[key])
-
-    g.initializer.extend([init(f"operands/{k}", v) for k, v in w.items()]
-                         + [init("operands/tokens_shape", np.array([1, -1, C], np.int64))])
-    g.node.append(helper.make_node("Reshape", ["memory", "operands/tokens_shape"],
-                                   ["operands/tokens"], name="operands/tokens"))
-    cached = helper.make_graph(
-        [helper.make_node("MatMul", ["operands/tokens", "operands/key_weight"], ["c/k"]),
-         helper.make_node("Add", ["c/k", "operands/key_bias"], ["c/keys"]),
-         helper.make_node("MatMul", ["operands/tokens", "operands/value_weight"], ["c/v"]),
-         helper.make_node("Add", ["c/v", "operands/value_bias"], ["c/values"]),
-         helper.make_node("Identity", ["c/eye"], ["c/key_map"]),
-         helper.make_node("Identity", ["c/eye"], ["c/value_map"]),
-         helper.make_node("Identity", ["c/zero"], ["c/value_bias"])],
-        "cached_operands", [],
-        [out(n) for n in ("c/keys", "c/values", "c/key_map", "c/value_map", "c/value_bias")],
-        [init("c/eye", np.broadcast_to(np.eye(d, dtype=np.float32), (H, d, d))),
-         init("c/zero", np.zeros((H, 1, d), np.float32))])
-    folded = helper.make_graph(
-        [helper.make_node("Identity", ["f/empty"], ["f/keys"]),
-         helper.make_node("Identity", ["f/empty"], ["f/values"]),
-         helper.make_node("Identity", ["operands/key_map"], ["f/key_map"]),
-         helper.make_node("Identity", ["operands/value_weight"], ["f/value_map"]),
-         helper.make_node("Identity", ["operands/value_bias"], ["f/value_bias"])],
-        "folded_operands", [],
-        [out(n) for n in ("f/keys", "f/values", "f/key_map", "f/value_map", "f/value_bias")],
-        [init("f/empty", np.zeros((0, 0, C), np.float32))])
-    g.node.append(helper.make_node("If", ["key_value"], list(OPERAND_NAMES), name="operands",
-                                   then_branch=cached, else_branch=folded))
-    g.input.append(helper.make_tensor_value_info("key_value", TensorProto.BOOL, []))
-    g.output.extend([out(n) for n in OPERAND_NAMES])
-    return graph_model
+def join_layer_forms(cached: onnx.ModelProto, folded: onnx.ModelProto,
+                     model: PARQ) -> onnx.ModelProto:
+    """layer.onnx: both exported forms of :class:`LayerGraph` under ``If(key_value)``, with
+    inputs shared (the keys and values may be empty when the folded form runs)."""
+    inputs = {i.name: i for i in folded.graph.input}
+    inputs.update({i.name: i for i in cached.graph.input})
+    infos = [inputs[n] for n in LAYER_INPUTS if n not in OPERAND_NAMES] + operand_infos(model)
+    order = {n: i for i, n in enumerate(LAYER_INPUTS)}
+    infos.sort(key=lambda i: order[i.name])
+    outer = helper.make_model(helper.make_graph([], "parq_layer", infos, []),
+                              opset_imports=cached.opset_import, ir_version=cached.ir_version)
+    outputs = [o for o in cached.graph.output]
+    return conditional.add_if(outer, "key_value", cached, folded, list(LAYER_OUTPUTS), outputs)

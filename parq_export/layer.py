@@ -124,6 +124,13 @@ class DecoderLayer(nn.Module):
         return (keys, keys, W[C:2 * C].reshape(H, d, C),
                 W[2 * C:].reshape(H, d, C).transpose(1, 2), b[2 * C:].reshape(H, 1, d))
 
+    def cross_queries(self, x: torch.Tensor) -> torch.Tensor:
+        """x (B, K, C) -> the cross-attention's queries per head, scaled: (B, H, K, d)."""
+        B, K, C = x.shape
+        H, d = self.heads, C // self.heads
+        W, b = self.multihead_attn.in_proj_weight, self.multihead_attn.in_proj_bias
+        return F.linear(x, W[:C], b[:C]).view(B, K, H, d).transpose(1, 2) * d ** -0.5
+
     def cross_attention(self, x, keys, values, key_map, value_map, value_bias):
         """x (B, K, C) attends to the operands of :meth:`attention_operands` -> (B, K, C).
 
@@ -137,9 +144,8 @@ class DecoderLayer(nn.Module):
         serves both forms without broadcasting over heads.
         """
         B, K, C = x.shape
-        H, d = self.heads, C // self.heads
-        W, b = self.multihead_attn.in_proj_weight, self.multihead_attn.in_proj_bias
-        q = F.linear(x, W[:C], b[:C]).view(B, K, H, d).transpose(1, 2) * d ** -0.5
+        H = self.heads
+        q = self.cross_queries(x)
         if key_map is None:  # the fused form: one kernel, no (K, S) softmax kept for backward
             ctx = F.scaled_dot_product_attention(q, keys, values, scale=1.0) + value_bias
             return self.multihead_attn.out_proj(ctx.transpose(1, 2).reshape(B, K, C))
@@ -148,12 +154,16 @@ class DecoderLayer(nn.Module):
         ctx = (attn @ values).reshape(B, H, K, -1) @ value_map + value_bias
         return self.multihead_attn.out_proj(ctx.transpose(1, 2).reshape(B, K, C))
 
-    def forward(self, x, pos, operands=None, memory=None):
-        """x, pos (B, K, C).  Give ``operands`` (fast form) or ``memory`` (B, S, C), in which
-        case nn.MultiheadAttention runs exactly as in the authors' code."""
+    def forward(self, x, pos, operands=None, memory=None, attend=None):
+        """x, pos (B, K, C).  Give ``operands`` (fast form), ``attend`` (a function computing
+        the cross-attention of x + pos, (B, K, C) -> (B, K, C)) or ``memory`` (B, S, C), in
+        which case nn.MultiheadAttention runs exactly as in the authors' code."""
         if memory is None:
+            if attend is None:
+                def attend(y):
+                    return self.cross_attention(y, *operands)
             x = self.norm1(x + self.self_attention(x, pos))
-            x = self.norm2(x + self.cross_attention(x + pos, *operands))
+            x = self.norm2(x + attend(x + pos))
         else:
             tgt, p, mem = x.transpose(0, 1), pos.transpose(0, 1), memory.transpose(0, 1)
             q = tgt + p
@@ -194,9 +204,11 @@ class PARQLayer(nn.Module):
     def attention_operands(self, memory: torch.Tensor, cached: bool, fused: bool = False):
         return self.decoder.attention_operands(memory, cached, fused)
 
-    def forward(self, query_content, reference_points, operands=None, memory=None) -> dict:
+    def forward(self, query_content, reference_points, operands=None, memory=None,
+                attend=None) -> dict:
         pos = self.position_encoder(sine_encoding(reference_points, self.dim_t))
-        tokens = self.decoder(query_content, pos, operands=operands, memory=memory)
+        tokens = self.decoder(query_content, pos, operands=operands, memory=memory,
+                              attend=attend)
         return self.decode(tokens, reference_points)
 
     def decode(self, tokens: torch.Tensor, reference_points: torch.Tensor) -> dict:

@@ -16,7 +16,7 @@ import tempfile
 import numpy as np
 
 from parq_runtime import keyframes, preprocess
-from parq_runtime.detector import snippet_inputs
+from parq_runtime.detector import empty_cache, snippet_inputs
 from parq_runtime.errors import ParqError
 from parq_runtime.readers import open_capture
 
@@ -40,8 +40,6 @@ def calibration_feeds(scenes_dir, card_config, views: int = 3, limit: int = 48) 
     if not folders:
         raise ParqError(f"{scenes_dir}: no generated scenes to calibrate with (parq-synth)")
     feeds = []
-    C = card_config.feature_dim
-    fw, fh = card_config.feature_size
     for folder in folders:
         capture = open_capture(folder)
         keys = keyframes.select([f.cam_to_world for f in capture.frames])
@@ -54,7 +52,7 @@ def calibration_feeds(scenes_dir, card_config, views: int = 3, limit: int = 48) 
                 capture.up)
             feeds.append({
                 "images": images,
-                "cached_features": np.zeros((0, C, fh, fw), np.float32),
+                **empty_cache(card_config.feature_size, card_config.feature_dim),
                 "camera": camera.astype(np.float32),
                 "T_local_camera": T_local_camera.astype(np.float32),
                 "key_value": np.array(False)})

@@ -64,11 +64,19 @@ class RayEncoder(nn.Module):
         directions_local = (R @ rays_camera[..., None])[..., 0]      # (..., N, h, w, 3)
         return directions_local[..., None, :] * self.depths[:, None] + t
 
-    def forward(self, camera: torch.Tensor, T_local_camera: torch.Tensor) -> torch.Tensor:
+    def hidden(self, camera: torch.Tensor, T_local_camera: torch.Tensor) -> torch.Tensor:
+        """The MLP's hidden layer, ReLU(Linear(points)): (..., N, h, w, C).  The encoding is
+        ``mlp[2]`` of it; the exported graphs keep it in this factored form (see
+        ``parq_export.factored``)."""
         points = inverse_sigmoid(normalize_points(self.ray_points(camera, T_local_camera),
                                                   self.scale))
         points = points.flatten(-2)                                   # (..., N, h, w, 3D)
-        # As one 2-D matrix the Linear layers export as Gemm with the bias (and the ReLU)
+        # As one 2-D matrix the Linear layer exports as Gemm with the bias (and the ReLU)
         # fused, instead of MatMul + a separate Add over the (N h w, C) result.
-        encoding = self.mlp(points.reshape(-1, points.shape[-1]))
-        return encoding.reshape(*points.shape[:-1], encoding.shape[-1])
+        hidden = self.mlp[1](self.mlp[0](points.reshape(-1, points.shape[-1])))
+        return hidden.reshape(*points.shape[:-1], hidden.shape[-1])
+
+    def forward(self, camera: torch.Tensor, T_local_camera: torch.Tensor) -> torch.Tensor:
+        hidden = self.hidden(camera, T_local_camera)
+        encoding = self.mlp[2](hidden.reshape(-1, hidden.shape[-1]))
+        return encoding.reshape(hidden.shape)

@@ -1,9 +1,9 @@
 """Check exported graphs against the torch model on random inputs.
 
 The check runs at shapes other than the ones the graphs were traced with (other view counts,
-query counts, a streaming call with cached features) and in both forms of the attention
-operands.  Tolerances are those of ``../shared/golden/README.md`` for the box parameters;
-intermediate tensors are compared relative to their magnitude.
+query counts, a streaming call with cached levels) and in both forms of the attention.
+Tolerances are those of ``../shared/golden/README.md`` for the box parameters; intermediate
+tensors are compared relative to their magnitude.
 """
 from __future__ import annotations
 
@@ -13,13 +13,13 @@ import torch
 
 from parq_runtime import geometry
 
-from .graphs import LAYER_OUTPUTS, OPERAND_NAMES
+from . import factored
+from .graphs import FACTOR_NAMES, LAYER_OUTPUTS, OPERAND_NAMES, QUERY_NAMES
 from .model import PARQ
 
 # max abs difference allowed, as a fraction of the reference's largest magnitude (at least 1)
-RELATIVE_TOLERANCE = {"features": 1e-4, "memory": 1e-4, "attention_keys": 1e-4,
-                      "attention_values": 1e-4, "key_map": 1e-6, "value_map": 1e-6,
-                      "value_bias": 1e-6}
+RELATIVE_TOLERANCE = {"level_0": 1e-4, "level_1": 1e-4, "level_2": 1e-4, "level_3": 1e-4,
+                      "ray_hidden": 1e-4, "attention_keys": 1e-4, "attention_values": 1e-4}
 # golden tolerances: centers in metres, rotation entries, logits, sizes relative
 ABSOLUTE_TOLERANCE = {"center": 1e-4, "rotation": 1e-3, "ortho6d": 1e-3, "logits": 1e-3,
                       "next_reference_points": 1e-4, "size": 1e-3}
@@ -50,6 +50,21 @@ def _max_abs(a, b) -> float:
         if np.size(a) else 0.0
 
 
+def reference_factors(model: PARQ, images: np.ndarray, camera: np.ndarray,
+                      T_local_camera: np.ndarray) -> dict:
+    """The torch model's factors of the memory (``parq_export.factored``) for one snippet:
+    level_0..3 (N, h_l, w_l, F), ray_hidden (N, h, w, C), and the memory (N, h, w, C)."""
+    with torch.no_grad():
+        x = torch.from_numpy(images).permute(0, 3, 1, 2).float() / 255.0
+        levels = [p.permute(0, 2, 3, 1) for p in model.backbone.levels(x)]
+        hidden = model.ray_encoder.hidden(torch.from_numpy(camera),
+                                          torch.from_numpy(T_local_camera))
+        memory = model.memory(model.image_features(x[None]), torch.from_numpy(camera)[None],
+                              torch.from_numpy(T_local_camera)[None])[0]
+    out = {f"level_{i}": p for i, p in enumerate(levels)}
+    return {**out, "ray_hidden": hidden, "memory": memory}
+
+
 def check(model: PARQ, backbone_path, layer_path, seed: int = 0) -> dict:
     """Run both graphs and the torch model on random inputs; returns {name: (max abs diff,
     tolerance)} over all cases.  ``failed(report)`` lists the entries past tolerance."""
@@ -67,6 +82,13 @@ def check(model: PARQ, backbone_path, layer_path, seed: int = 0) -> dict:
         old = report.get(name, (0.0, tol))
         report[name] = (max(old[0], diff), tol)
 
+    def compare(name, got, ref):
+        if np.shape(got) != np.shape(ref):
+            note(f"{name} shape", float("inf"), 0.0)
+            return
+        scale = max(1.0, float(np.abs(ref).max()) if np.size(ref) else 1.0)
+        note(name, _max_abs(got, ref), RELATIVE_TOLERANCE[name.split(".")[-1]] * scale)
+
     # (views encoded earlier, new views, queries); the graphs were traced with 3 views and
     # the learned query count.
     cases = ((0, 2, 7), (1, 3, min(c.num_queries + 44, 1024)))
@@ -74,52 +96,43 @@ def check(model: PARQ, backbone_path, layer_path, seed: int = 0) -> dict:
         views = cached_views + new_views
         images = rng.integers(0, 256, (views, h, w, 3), dtype=np.uint8)
         camera, T_local_camera = random_snippet(rng, views, c)
-        with torch.no_grad():
-            ref_features = model.image_features(
-                torch.from_numpy(images).permute(0, 3, 1, 2)[None].float() / 255.0)[0]
-            ref_memory = model.memory(ref_features[None], torch.from_numpy(camera)[None],
-                                      torch.from_numpy(T_local_camera)[None])[0]
-        cached_features = ref_features[:cached_views].numpy()
-        feeds = {"images": images[cached_views:], "cached_features": cached_features,
-                 "camera": camera, "T_local_camera": T_local_camera}
-        query = rng.normal(0, 1, (queries, c.feature_dim)).astype(np.float32)
+        ref = reference_factors(model, images, camera, T_local_camera)
+        feeds = {"images": images[cached_views:], "camera": camera,
+                 "T_local_camera": T_local_camera,
+                 **{f"cached_{n}": ref[n][:cached_views].numpy() for n in FACTOR_NAMES[:-1]}}
+        tokens = ref["memory"].reshape(1, -1, c.feature_dim)
+        query = {"query_features": rng.normal(0, 1, (queries, c.feature_dim)),
+                 "query_ray_hidden": np.abs(rng.normal(0, 1, (queries, c.feature_dim))),
+                 "query_weight": rng.uniform(0, 1, (queries, 1))}
+        query = {k: v.astype(np.float32) for k, v in query.items()}
         points = rng.uniform(0.05, 0.95, (queries, 3)).astype(np.float32)
+        with torch.no_grad():
+            content = factored.content(*(torch.from_numpy(query[n]) for n in QUERY_NAMES),
+                                       model.ray_encoder.mlp[2])
+            expected = model.layer(content[None], torch.from_numpy(points)[None],
+                                   memory=tokens)
+            ref_keys, ref_values, *_ = model.layer.attention_operands(tokens, cached=True)
         for cached_form in (True, False):
             outs = dict(zip([o.name for o in backbone.get_outputs()],
                             backbone.run(None, {**feeds, "key_value": np.array(cached_form)})))
-            tokens = ref_memory.reshape(1, -1, c.feature_dim)
-            with torch.no_grad():
-                ref_ops = model.layer.attention_operands(tokens, cached=cached_form)
-                ref_ops = [ref_ops[0][0], ref_ops[1][0], *ref_ops[2:]]
-                expected = {"features": ref_features[cached_views:], "memory": ref_memory,
-                            **dict(zip(OPERAND_NAMES, ref_ops))}
-            for name, ref in expected.items():
-                ref = ref.detach().numpy()
-                got = outs[name]
-                if not cached_form and name in ("attention_keys", "attention_values"):
-                    got, ref = got.size, 0  # folded form: empty, the memory is used instead
-                    note(f"backbone.{name} (folded, empty)", float(got != ref), 0.0)
-                    continue
-                if np.shape(got) != np.shape(ref):
-                    note(f"backbone.{name} shape", float("inf"), 0.0)
-                    continue
-                scale = max(1.0, float(np.abs(ref).max()) if ref.size else 1.0)
-                note(f"backbone.{name}", _max_abs(got, ref), RELATIVE_TOLERANCE[name] * scale)
-            operands = [outs[n] for n in OPERAND_NAMES]
-            if not cached_form:
-                operands[0] = operands[1] = outs["memory"].reshape(1, -1, c.feature_dim)
-            got = dict(zip(LAYER_OUTPUTS, layer.run(None, dict(zip(
-                ("query_content", "reference_points") + OPERAND_NAMES,
-                [query, points] + operands)))))
-            with torch.no_grad():
-                ref = model.layer(torch.from_numpy(query)[None], torch.from_numpy(points)[None],
-                                  memory=tokens)
+            for name in FACTOR_NAMES:
+                compare(f"backbone.{name}", outs[name], ref[name].numpy())
+            if cached_form:
+                compare("backbone.attention_keys", outs["attention_keys"], ref_keys[0].numpy())
+                compare("backbone.attention_values", outs["attention_values"],
+                        ref_values[0].numpy())
+            else:
+                empty = outs["attention_keys"].size + outs["attention_values"].size
+                note("backbone.attention_keys (folded, empty)", float(empty), 0.0)
+            got = dict(zip(LAYER_OUTPUTS, layer.run(None, {
+                **query, "reference_points": points, "key_value": np.array(cached_form),
+                **{n: outs[n] for n in OPERAND_NAMES + FACTOR_NAMES}})))
             form = "cached" if cached_form else "folded"
-            logits = ref["logits"][0].numpy()
+            logits = expected["logits"][0].numpy()
             top2 = np.sort(logits, -1)[:, -2:]
             clear = (top2[:, 1] - top2[:, 0]) > 1e-3
             for name in LAYER_OUTPUTS:
-                r = ref[name][0].numpy()
+                r = expected[name][0].numpy()
                 if name == "size":
                     diff = float(np.max(np.abs(got[name][clear] / r[clear] - 1), initial=0.0))
                 else:
@@ -133,16 +146,19 @@ def failed(report: dict) -> list:
 
 
 def quantization_error(backbone_path, feeds: list, model: PARQ) -> dict:
-    """Max abs difference of the (quantized) backbone's memory from the torch model's."""
+    """Max abs difference of the memory formed from the (quantized) backbone's factors from
+    the torch model's memory."""
     session = ort.InferenceSession(str(backbone_path), providers=["CPUExecutionProvider"])
     names = [o.name for o in session.get_outputs()]
     worst, scale = 0.0, 0.0
     for feed in feeds:
-        memory = dict(zip(names, session.run(None, feed)))["memory"]
+        outs = dict(zip(names, session.run(None, feed)))
         with torch.no_grad():
-            x = torch.from_numpy(feed["images"]).permute(0, 3, 1, 2)[None].float() / 255.0
-            ref = model.memory(model.image_features(x), torch.from_numpy(feed["camera"])[None],
-                               torch.from_numpy(feed["T_local_camera"])[None])[0].numpy()
+            memory = factored.memory([torch.from_numpy(outs[n]) for n in FACTOR_NAMES[:-1]],
+                                     torch.from_numpy(outs["ray_hidden"]),
+                                     model.ray_encoder.mlp[2]).numpy()
+        ref = reference_factors(model, feed["images"], feed["camera"],
+                                feed["T_local_camera"])["memory"].numpy()
         worst = max(worst, _max_abs(memory, ref))
         scale = max(scale, float(np.abs(ref).max()))
     return {"memory": worst, "memory_relative": worst / max(scale, 1e-12)}

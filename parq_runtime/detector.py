@@ -37,24 +37,40 @@ class DetectionResult:
     timings: dict = field(default_factory=dict)
 
 
-def attention_cost(form: str, views: int, tokens_per_view: int, channels: int, heads: int,
+def attention_cost(form: str, views: int, feature_size: tuple, channels: int, heads: int,
                    queries: int, iterations: int) -> float:
-    """Multiply-adds of the cross-attention over a snippet, in either exact form.
+    """Multiply-adds that differ between the two exact forms over a snippet.
 
-    cached: keys and values projected once (2 S C^2), then per iteration scores and weighted
-    sum over heads of width d (2 K S C).  folded: per iteration, every head works at full
-    width C (2 H K S C) and nothing is projected."""
-    S = views * tokens_per_view
+    Both read the memory m = [P2 | up(P3) | up(P4) | up(P5)] + W2 r + b2 in factored form
+    (``parq_export.factored``), over S = views * h * w tokens of C channels.  cached: forms m
+    (W2: S C^2) and projects keys and values (2 S C^2), then per iteration scores and weighted
+    sum over heads of width d (2 K S C).  folded: per iteration every head scores and sums at
+    full width over P2 and r (C / 4 + C channels on S tokens) and over each coarse level at its
+    own resolution (C / 4 channels on S_l tokens); nothing is projected."""
+    from .model_card import level_sizes
+
+    sizes = level_sizes(feature_size)
+    S = views * sizes[0][0] * sizes[0][1]
     if form == "cached":
-        return 2 * S * channels ** 2 + iterations * 2 * queries * S * channels
-    return iterations * 2 * heads * queries * S * channels
+        return 3 * S * channels ** 2 + iterations * 2 * queries * S * channels
+    tokens_by_width = S * (channels // 4 + channels) \
+        + sum(views * h * w for h, w in sizes[1:]) * (channels // 4)
+    return iterations * 2 * heads * queries * tokens_by_width
 
 
-def choose_form(views, tokens_per_view, channels, heads, queries, iterations) -> str:
-    """The cheaper exact form: cached iff iterations * queries * (heads - 1) > channels."""
-    args = (views, tokens_per_view, channels, heads, queries, iterations)
+def choose_form(views, feature_size, channels, heads, queries, iterations) -> str:
+    """The cheaper exact form by :func:`attention_cost`."""
+    args = (views, feature_size, channels, heads, queries, iterations)
     return "cached" if attention_cost("cached", *args) < attention_cost("folded", *args) \
         else "folded"
+
+
+def empty_cache(feature_size: tuple, channels: int) -> dict:
+    """backbone.onnx's cached_level_* inputs for a call with no frames encoded before."""
+    from .model_card import level_sizes
+
+    return {f"cached_{name}": np.zeros((0, h, w, channels // 4), np.float32)
+            for name, (h, w) in zip(loop.FACTOR_NAMES, level_sizes(feature_size))}
 
 
 def snippet_inputs(views, T_world_camera, feature_stride: int, up=geometry.UP_Z) -> tuple:
@@ -129,27 +145,27 @@ class Detector:
         views = [self._prepare_view(i, image, K_i) for i, (image, K_i) in enumerate(zip(images, K))]
         return snippet_inputs(views, T_world_camera, self.card.feature_stride, up)
 
-    def encode(self, images, camera, T_local_camera, cached: bool, cached_features=None):
-        """Run backbone.onnx on new frames (Nn, h, w, 3) after ``cached_features`` (Nc, C, h',
-        w') of frames encoded before; camera and T_local_camera list the Nc + Nn views in that
-        order.  Returns (memory (N, h', w', C), attention operands, features of the new frames
-        (Nn, C, h', w'))."""
-        C = self.card.feature_dim
-        fw, fh = self.card.feature_size
-        if cached_features is None:
-            cached_features = np.zeros((0, C, fh, fw), np.float32)
+    def encode(self, images, camera, T_local_camera, cached: bool, cached_levels=None):
+        """Run backbone.onnx on new frames (Nn, h, w, 3) after frames encoded before, whose
+        levels P2..P5 are ``cached_levels`` (a list of four (Nc, h_l, w_l, F) arrays, or
+        None); camera and T_local_camera list the Nc + Nn views in that order.  Returns
+        (factors: level_0..3 (N, h_l, w_l, F) and ray_hidden (N, h', w', C), attention
+        operands (empty unless ``cached``))."""
+        feeds = empty_cache(self.card.feature_size, self.card.feature_dim)
+        if cached_levels is not None:
+            feeds = {name: np.ascontiguousarray(levels, dtype=np.float32)
+                     for name, levels in zip(feeds, cached_levels)}
         if len(images) == 0:
             w, h = self.card.image_size
             images = np.zeros((0, h, w, 3), np.uint8)
         outputs = [o.name for o in self.backbone.get_outputs()]
         result = dict(zip(outputs, self.backbone.run(None, {
-            "images": np.ascontiguousarray(images),
-            "cached_features": np.ascontiguousarray(cached_features, dtype=np.float32),
+            **feeds, "images": np.ascontiguousarray(images),
             "camera": camera.astype(np.float32),
             "T_local_camera": T_local_camera.astype(np.float32),
             "key_value": np.array(cached)})))
-        operands = {k: result[k] for k in loop.OPERAND_NAMES}
-        return result["memory"], operands, result["features"]
+        return ({k: result[k] for k in loop.FACTOR_NAMES},
+                {k: result[k] for k in loop.OPERAND_NAMES})
 
     def detect(self, images, intrinsics, cam_to_world, iters: int = 2, queries: int = 32,
                score_threshold: float | None = None, region: bool = True,
@@ -194,23 +210,28 @@ class Detector:
         T_local_camera = geometry.invert(T_world_local) @ T_world_camera[order]
         T_camera_local = geometry.invert(T_local_camera)
         timings["preprocess"] = time.perf_counter() - start
-        fw, fh = self.card.feature_size
         if form == "auto":
-            form = choose_form(len(images), fw * fh, self.card.feature_dim, self.card.heads,
-                               len(reference), iters)
+            form = choose_form(len(images), self.card.feature_size, self.card.feature_dim,
+                               self.card.heads, len(reference), iters)
         start = time.perf_counter()
-        memory, operands, features = self.encode(
+        cached_levels = None
+        if old:
+            entries = [cache.get(keys[i])[0] for i in old]
+            cached_levels = [np.stack([e[level] for e in entries]) for level in range(4)]
+        factors, operands = self.encode(
             np.stack([prepared[i][0] for i in new]) if new else [], camera, T_local_camera,
-            form == "cached",
-            np.stack([cache.get(keys[i])[0] for i in old]) if old else None)
+            form == "cached", cached_levels)
         if cache is not None:
             for j, i in enumerate(new):
                 if keys[i] is not None:
-                    cache.put(keys[i], (features[j], prepared[i][1]))
+                    levels = tuple(factors[n][len(old) + j].copy()
+                                   for n in loop.FACTOR_NAMES[:-1])
+                    cache.put(keys[i], (levels, prepared[i][1]))
         timings["backbone"] = time.perf_counter() - start
         timings["iterations"] = []
-        iterations = loop.run(self.layer, memory, operands, camera, T_camera_local, reference,
-                              iters, self.card.decoder_scale, timings["iterations"])
+        iterations = loop.run(self.layer, factors, operands, camera, T_camera_local, reference,
+                              iters, self.card.decoder_scale, form == "cached",
+                              timings["iterations"])
         start = time.perf_counter()
         found = box_decoding.detections(
             iterations[-1], T_world_local, self.classes, float(threshold), self.card.nms_iou,
@@ -220,8 +241,9 @@ class Detector:
 
 
 class FeatureCache:
-    """Image features of the last ``capacity`` frames, keyed by frame, for streaming: a frame
-    shared by overlapping snippets goes through the image encoder once."""
+    """Image features (the FPN levels P2..P5) of the last ``capacity`` frames, keyed by frame,
+    for streaming: a frame shared by overlapping snippets goes through the image encoder
+    once."""
 
     def __init__(self, capacity: int):
         self.capacity = int(capacity)

@@ -1,9 +1,13 @@
 """The recurrent loop: numpy samples the query content, layer.onnx runs one PARQ iteration.
 
 Per iteration l, with reference points x_l (K, 3) normalised to the decoder box:
-  points_local = denormalise(x_l)                     metres, local frame
-  query_content = pixel_aligned(memory, points_local)  (K, C), bilinear, averaged over views
-  box parameters, x_{l+1} = layer(query_content, x_l, attention operands)
+  points_local = denormalise(x_l)                        metres, local frame
+  query factors = sample_factors(factors, points_local)  bilinear, averaged over views
+  box parameters, x_{l+1} = layer(query factors, x_l, attention operands, factors)
+
+The memory is never formed: backbone.onnx returns its factors, the FPN levels P2..P5 at their
+own resolution and the ray MLP's hidden layer (``parq_export.factored``), and the layer applies
+the ray MLP's last linear layer to the sampled hidden values.
 """
 from __future__ import annotations
 
@@ -14,7 +18,9 @@ import numpy as np
 
 from . import geometry
 
-OPERAND_NAMES = ("attention_keys", "attention_values", "key_map", "value_map", "value_bias")
+OPERAND_NAMES = ("attention_keys", "attention_values")
+FACTOR_NAMES = ("level_0", "level_1", "level_2", "level_3", "ray_hidden")
+QUERY_NAMES = ("query_features", "query_ray_hidden", "query_weight")
 LAYER_OUTPUTS = ("center", "size", "ortho6d", "rotation", "logits", "next_reference_points")
 
 
@@ -44,13 +50,35 @@ def normalize(points: np.ndarray, scale) -> np.ndarray:
     return (points - scale[0::2]) / (scale[1::2] - scale[0::2])
 
 
-def pixel_aligned_features(memory: np.ndarray, points_local: np.ndarray, camera: np.ndarray,
-                           T_camera_local: np.ndarray) -> np.ndarray:
-    """Query content (K, C) float32: the memory (N, h, w, C) sampled where points_local (K, 3)
-    project with the feature-resolution pinholes camera (N, 4) and poses T_camera_local
-    (N, 4, 4).  Bilinear with align_corners=True and zero padding, summed over all views and
-    divided by the number of views where the point is valid (at least 1), as the authors do."""
-    N, h, w, C = memory.shape
+def resize_taps(size_out: int, size_in: int) -> tuple:
+    """Bilinear resize along one axis, align_corners=False (F.interpolate's rule): output
+    index i reads inputs lo[i] and hi[i] with weights 1 - frac[i] and frac[i]."""
+    src = np.maximum((np.arange(size_out) + 0.5) * (size_in / size_out) - 0.5, 0.0)
+    lo = np.floor(src).astype(np.int64)
+    hi = np.minimum(lo + 1, size_in - 1)
+    return lo, hi, (src - lo).astype(np.float32)
+
+
+def _gather(tokens: np.ndarray, view, row, col, weight) -> np.ndarray:
+    """sum over taps g of weight[g, k] * tokens[view[g], row[g, k], col[g, k]]: (K, X)."""
+    N, h, w, X = tokens.shape
+    taps = tokens.reshape(-1, X)[(view * h + row) * w + col]                 # (G, K, X)
+    return np.einsum("gk,gkx->kx", weight, taps)
+
+
+def sample_factors(factors: dict, points_local: np.ndarray, camera: np.ndarray,
+                   T_camera_local: np.ndarray) -> dict:
+    """The query content's factors where points_local (K, 3) project with the
+    feature-resolution pinholes camera (N, 4) and poses T_camera_local (N, 4, 4).
+
+    The content is the memory sampled bilinearly (align_corners=True, zero padding), summed
+    over all views and divided by the number of views where the point is valid (at least 1),
+    as the authors do.  Here the same sample is taken of each factor: query_features (K, C)
+    the concatenated levels, each coarse level read through its resize to P2's grid;
+    query_ray_hidden (K, C) the ray MLP's hidden layer; query_weight (K, 1) the sum of the
+    weights (for the MLP's bias)."""
+    level_0 = factors["level_0"]
+    N, h, w, _ = level_0.shape
     points_camera = (np.einsum("nij,kj->nki", T_camera_local[:, :3, :3], points_local)
                      + T_camera_local[:, None, :3, 3])
     uv, valid = geometry.project(points_camera, camera[:, None, :], (w, h))
@@ -63,41 +91,52 @@ def pixel_aligned_features(memory: np.ndarray, points_local: np.ndarray, camera:
     fv = (v - v0).astype(np.float32)
     u0 = u0.astype(np.int64)
     v0 = v0.astype(np.int64)
-    view = np.arange(N)[:, None]
-    indices, weights = [], []
+    view = np.broadcast_to(np.arange(N)[:, None], u0.shape)
+    rows, cols, weights = [], [], []
     for du, dv, weight in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)),
                            (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
         uu, vv = u0 + du, v0 + dv
         inside = (uu >= 0) & (uu <= w - 1) & (vv >= 0) & (vv <= h - 1)
-        indices.append((view * h + np.clip(vv, 0, h - 1)) * w + np.clip(uu, 0, w - 1))
+        rows.append(np.clip(vv, 0, h - 1))
+        cols.append(np.clip(uu, 0, w - 1))
         weights.append(np.where(inside, weight, 0).astype(np.float32))
-    indices = np.stack(indices).reshape(4 * N, -1)                   # (4N, K)
-    weights = np.stack(weights).reshape(4 * N, -1)
-    taps = memory.reshape(-1, C)[indices]                             # (4N, K, C)
-    content = np.einsum("gk,gkc->kc", weights, taps)
-    count = np.maximum(valid.sum(0), 1).astype(np.float32)
-    return (content / count[:, None]).astype(np.float32)
+    views = np.concatenate([view] * 4)                                    # (4N, K)
+    rows, cols, weights = np.concatenate(rows), np.concatenate(cols), np.concatenate(weights)
+    count = np.maximum(valid.sum(0), 1).astype(np.float32)[:, None]      # (K, 1)
+    features = [_gather(level_0, views, rows, cols, weights)]
+    for name in FACTOR_NAMES[1:-1]:
+        level = factors[name]
+        _, hl, wl, _ = level.shape
+        lo_r, hi_r, fr = resize_taps(h, hl)
+        lo_c, hi_c, fc = resize_taps(w, wl)
+        # each tap on P2's grid reads 2 x 2 taps of the level: (4N, K) -> (16N, K)
+        a, b = fr[rows], fc[cols]
+        sub_rows = np.concatenate([lo_r[rows], lo_r[rows], hi_r[rows], hi_r[rows]])
+        sub_cols = np.concatenate([lo_c[cols], hi_c[cols], lo_c[cols], hi_c[cols]])
+        sub_weights = np.concatenate([(1 - a) * (1 - b), (1 - a) * b, a * (1 - b), a * b]) \
+            * np.concatenate([weights] * 4)
+        features.append(_gather(level, np.concatenate([views] * 4), sub_rows, sub_cols,
+                                sub_weights))
+    return {"query_features": (np.concatenate(features, -1) / count).astype(np.float32),
+            "query_ray_hidden": (_gather(factors["ray_hidden"], views, rows, cols, weights)
+                                 / count).astype(np.float32),
+            "query_weight": (weights.sum(0)[:, None] / count).astype(np.float32)}
 
 
-def run(layer_session, memory: np.ndarray, operands: dict, camera: np.ndarray,
+def run(layer_session, factors: dict, operands: dict, camera: np.ndarray,
         T_camera_local: np.ndarray, reference_points: np.ndarray, iterations: int,
-        decoder_scale, timings: list | None = None) -> list:
+        decoder_scale, cached: bool, timings: list | None = None) -> list:
     """Run ``iterations`` PARQ iterations; returns a list of :class:`Iteration`.
 
-    operands: the attention operands from backbone.onnx; in the folded form (empty keys) the
-    memory (1, S, C) takes the place of the keys and values.
-    """
-    feeds = dict(operands)
-    if feeds["attention_keys"].size == 0:
-        tokens = memory.reshape(1, -1, memory.shape[-1])
-        feeds["attention_keys"] = feeds["attention_values"] = tokens
+    factors, operands: backbone.onnx's outputs (``FACTOR_NAMES``, ``OPERAND_NAMES``); cached:
+    the form they were computed for (the keys and values are empty in the folded form)."""
+    feeds = {**factors, **operands, "key_value": np.array(cached)}
     ref = np.ascontiguousarray(reference_points, dtype=np.float32)
     out = []
     for _ in range(iterations):
         start = time.perf_counter()
         points_local = denormalize(ref, decoder_scale)
-        feeds["query_content"] = pixel_aligned_features(memory, points_local, camera,
-                                                        T_camera_local)
+        feeds.update(sample_factors(factors, points_local, camera, T_camera_local))
         feeds["reference_points"] = ref
         result = dict(zip(LAYER_OUTPUTS, layer_session.run(LAYER_OUTPUTS, feeds)))
         out.append(Iteration(reference=points_local, center=result["center"],

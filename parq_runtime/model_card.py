@@ -16,7 +16,7 @@ from . import fusion
 from .errors import ParqError
 
 CARD_FORMAT = "parq-onnx-model"
-CARD_VERSION = 1
+CARD_VERSION = 2  # 2: graphs pass the memory in factored form
 METADATA_KEY = "parq.model_card"
 REQUIRED = ("classes", "mean_sizes", "image", "feature", "decoder", "reference_points",
             "postprocess", "graphs", "limits", "config")
@@ -52,6 +52,12 @@ class ModelCard:
     @property
     def feature_dim(self) -> int:
         return int(self.raw["feature"]["channels"])
+
+    @property
+    def level_shapes(self) -> list:
+        """(h_l, w_l, channels) of the FPN levels P2..P5 that backbone.onnx returns."""
+        channels = self.feature_dim // 4
+        return [(h, w, channels) for h, w in level_sizes(self.feature_size)]
 
     @property
     def heads(self) -> int:
@@ -101,6 +107,17 @@ class ModelCard:
 
     def graph_path(self, role: str) -> pathlib.Path:
         return self.folder / self.raw["graphs"][role]["file"]
+
+
+def level_sizes(feature_size: tuple, levels: int = 4) -> list:
+    """(h_l, w_l) of the FPN levels P2..P5 for a stride-4 map of feature_size = (w, h): each
+    stride-2 convolution halves the size, rounding up."""
+    w, h = feature_size
+    sizes = [(h, w)]
+    for _ in range(levels - 1):
+        h, w = -(-h // 2), -(-w // 2)
+        sizes.append((h, w))
+    return sizes
 
 
 def _sha256(path: pathlib.Path) -> str:

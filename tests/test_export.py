@@ -20,12 +20,13 @@ from conftest import tiny_config
 def test_graphs_name_every_input_and_output_and_carry_the_card(tiny_model):
     card = json.loads((tiny_model / "model.json").read_text())
     for role, inputs, outputs in (
-            ("backbone", ["images", "cached_features", "camera", "T_local_camera",
-                          "key_value"],
-             ["features", "memory", "attention_keys", "attention_values", "key_map",
-              "value_map", "value_bias"]),
-            ("layer", ["query_content", "reference_points", "attention_keys",
-                       "attention_values", "key_map", "value_map", "value_bias"],
+            ("backbone", ["images", "cached_level_0", "cached_level_1", "cached_level_2",
+                          "cached_level_3", "camera", "T_local_camera", "key_value"],
+             ["level_0", "level_1", "level_2", "level_3", "ray_hidden", "attention_keys",
+              "attention_values"]),
+            ("layer", ["query_features", "query_ray_hidden", "query_weight", "reference_points",
+                       "attention_keys", "attention_values", "level_0", "level_1", "level_2",
+                       "level_3", "ray_hidden", "key_value"],
              ["center", "size", "ortho6d", "rotation", "logits", "next_reference_points"])):
         proto = onnx.load(tiny_model / f"{role}.onnx")
         assert [i.name for i in proto.graph.input] == inputs
@@ -37,6 +38,7 @@ def test_graphs_name_every_input_and_output_and_carry_the_card(tiny_model):
         assert embedded["reference_points"] == card["reference_points"]
         assert embedded["classes"] == card["classes"] == list(tiny_config().classes)
         assert card["graphs"][role]["file"] == f"{role}.onnx"
+        assert card["graphs"][role]["inputs"] == inputs
     assert card["checkpoint"]["layout"] == "parq-onnx"
     assert len(card["checkpoint"]["sha256"]) == 64
     assert card["verification"] and all(v["max_abs_diff"] <= v["tolerance"]
@@ -78,18 +80,21 @@ def test_runtime_matches_torch(tiny_checkpoint, tiny_model, views, queries, iter
 
 
 def test_graphs_agree_with_onnx_reference_evaluator(tiny_model):
+    """Both graphs, both forms, one frame cached and one new, against onnx's reference
+    evaluator (an independent implementation of every operator, the If included)."""
+    from parq_runtime.detector import empty_cache
+
     rng = np.random.default_rng(3)
     config = tiny_config()
     w, h = config.image_size
-    fw, fh = config.feature_size
     camera, T_local_camera = verify.random_snippet(rng, 2, config)
-    feeds = {"images": rng.integers(0, 256, (1, h, w, 3), dtype=np.uint8),
-             "cached_features": rng.normal(0, 1, (1, config.feature_dim, fh, fw))
-             .astype(np.float32),
+    cached = {k: rng.normal(0, 1, (1, *v.shape[1:])).astype(np.float32)
+              for k, v in empty_cache(config.feature_size, config.feature_dim).items()}
+    feeds = {"images": rng.integers(0, 256, (1, h, w, 3), dtype=np.uint8), **cached,
              "camera": camera, "T_local_camera": T_local_camera}
     det = Detector(tiny_model)
-    for cached in (True, False):
-        inputs = dict(feeds, key_value=np.array(cached))
+    for key_value in (True, False):
+        inputs = dict(feeds, key_value=np.array(key_value))
         names = [o.name for o in det.backbone.get_outputs()]
         ours = dict(zip(names, det.backbone.run(None, inputs)))
         ref = dict(zip(names, ReferenceEvaluator(str(tiny_model / "backbone.onnx"))
@@ -98,13 +103,12 @@ def test_graphs_agree_with_onnx_reference_evaluator(tiny_model):
             assert ours[name].shape == ref[name].shape, name
             np.testing.assert_allclose(ours[name], ref[name], atol=1e-4, rtol=1e-4,
                                        err_msg=name)
-        operands = [ours[n] for n in ("attention_keys", "attention_values", "key_map",
-                                      "value_map", "value_bias")]
-        if not cached:
-            operands[0] = operands[1] = ours["memory"].reshape(1, -1, config.feature_dim)
-        layer_inputs = dict(zip([i.name for i in det.layer.get_inputs()],
-                                [rng.normal(0, 1, (9, config.feature_dim)).astype(np.float32),
-                                 rng.uniform(0, 1, (9, 3)).astype(np.float32), *operands]))
+        C = config.feature_dim
+        layer_inputs = {"query_features": rng.normal(0, 1, (9, C)).astype(np.float32),
+                        "query_ray_hidden": rng.uniform(0, 1, (9, C)).astype(np.float32),
+                        "query_weight": rng.uniform(0, 1, (9, 1)).astype(np.float32),
+                        "reference_points": rng.uniform(0, 1, (9, 3)).astype(np.float32),
+                        "key_value": np.array(key_value), **ours}
         got = det.layer.run(None, layer_inputs)
         want = ReferenceEvaluator(str(tiny_model / "layer.onnx")).run(None, layer_inputs)
         for name, a, b in zip([o.name for o in det.layer.get_outputs()], got, want):
