@@ -30,8 +30,15 @@ def official_checkpoint() -> pathlib.Path:
 
 
 def official_model() -> pathlib.Path:
+    """The exported official checkpoint, exported again when this package reads another
+    model format than the cached one's."""
+    import json
+
+    from parq_runtime.model_card import CARD_VERSION
+
     out = CACHE / "official_model"
-    if not (out / "model.json").exists():
+    card = out / "model.json"
+    if not card.exists() or json.loads(card.read_text()).get("format_version") != CARD_VERSION:
         from parq_export.export import export
         export(official_checkpoint(), out, overwrite=True, log=lambda *_: None)
     return out

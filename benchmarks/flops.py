@@ -49,10 +49,14 @@ def resnet_fpn(config, width=None, height=None) -> float:
     return float(flops)
 
 
-def ray_encoding(config, views) -> float:
+def ray_encoding(config, views, hidden_only: bool = False) -> float:
+    """The ray MLP over every token; ``hidden_only``: its first layer, all that backbone.onnx
+    computes in the folded form (the second is applied to the factors, see
+    parq_export.factored)."""
     fw, fh = config.feature_size
     C = config.feature_dim
-    return float(2 * views * fw * fh * (3 * config.ray_samples * C + C * C))
+    return float(2 * views * fw * fh * (3 * config.ray_samples * C + (0 if hidden_only
+                                                                      else C * C)))
 
 
 def key_value_projection(config, views) -> float:
@@ -76,7 +80,15 @@ def layer(config, views, queries, form) -> float:
                      + C * (len(config.classes) + 1 + 3 + 3 + 6))
     dense += 2 * 2 * H * K * K * d             # self-attention scores and sum
     if form == "folded":
-        attention = 2 * 2 * H * K * S * C + 2 * 2 * H * K * d * C
+        # factored: P2 and the ray MLP's hidden layer (C / 4 + C wide) on S tokens, the coarse
+        # levels (C / 4 wide) at their own resolution, the W2-folded maps; the resizes of the
+        # score and weight maps are not counted (elementwise-sized).
+        from parq_runtime.model_card import level_sizes
+
+        sizes = level_sizes(config.feature_size)
+        coarse = sum(views * h * w for h, w in sizes[1:])
+        attention = 2 * 2 * H * K * (S * (C // 4 + C) + coarse * C // 4) \
+            + 2 * 2 * H * K * d * 2 * C + 2 * K * C * C     # maps; W2 on the query content
     else:
         attention = 2 * 2 * K * S * C + 2 * 2 * H * K * d * d
     if form == "reference":

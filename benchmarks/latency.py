@@ -157,7 +157,8 @@ def main():
         for system, runs in samples.items():
             form = forms[-1] if system == "runtime" else "reference"
             stage_flops = {
-                "backbone": 3 * flops.resnet_fpn(config) + flops.ray_encoding(config, 3)
+                "backbone": 3 * flops.resnet_fpn(config)
+                + flops.ray_encoding(config, 3, hidden_only=(form == "folded"))
                 + (flops.key_value_projection(config, 3) if form == "cached" else 0.0),
                 "per_iteration": flops.layer(config, 3, queries, form)}
             for stage in runs[0]:
