@@ -31,14 +31,17 @@ def official_checkpoint() -> pathlib.Path:
 
 def official_model() -> pathlib.Path:
     """The exported official checkpoint, exported again when this package reads another
-    model format than the cached one's."""
+    model format, or names other graph outputs, than the cached one's."""
     import json
 
+    from parq_export.graphs import BACKBONE_OUTPUTS, CACHED_OPERANDS
     from parq_runtime.model_card import CARD_VERSION
 
     out = CACHE / "official_model"
     card = out / "model.json"
-    if not card.exists() or json.loads(card.read_text()).get("format_version") != CARD_VERSION:
+    current = card.exists() and json.loads(card.read_text())
+    if not current or current.get("format_version") != CARD_VERSION or \
+            current["graphs"]["backbone"]["outputs"] != list(BACKBONE_OUTPUTS + CACHED_OPERANDS):
         from parq_export.export import export
         export(official_checkpoint(), out, overwrite=True, log=lambda *_: None)
     return out

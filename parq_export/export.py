@@ -31,8 +31,8 @@ from parq_runtime.model_card import CARD_FORMAT, CARD_VERSION, METADATA_KEY
 from . import checkpoint as ckpt
 from . import verify
 from . import factored
-from .graphs import (BACKBONE_INPUTS, BACKBONE_OUTPUTS, CACHED_LEVELS, FACTOR_NAMES,
-                     LAYER_INPUTS, LAYER_OUTPUTS, OPERAND_NAMES, BackboneGraph, CachedOperands,
+from .graphs import (BACKBONE_INPUTS, BACKBONE_OUTPUTS, CACHED_LEVELS, CACHED_OPERANDS,
+                     FACTOR_NAMES, LAYER_INPUTS, LAYER_OUTPUTS, BackboneGraph, CachedOperands,
                      LayerGraph, add_operands_branch, join_layer_forms)
 from .model import PARQ
 
@@ -97,7 +97,8 @@ def export_cached_operands(model: PARQ, opset: int) -> onnx.ModelProto:
     views = torch.export.Dim("views", min=1, max=MAX_VIEWS)
     program = _quiet_export(
         CachedOperands(model).eval(), tuple(_factor_examples(model, 3)), dynamo=True,
-        opset_version=opset, input_names=list(FACTOR_NAMES), output_names=list(OPERAND_NAMES),
+        opset_version=opset, input_names=list(FACTOR_NAMES),
+        output_names=list(CACHED_OPERANDS),
         dynamic_shapes={n: {0: views} for n in FACTOR_NAMES}, optimize=True, verify=False)
     return fold_weights(program.model_proto)
 
@@ -168,7 +169,7 @@ def build_card(model: PARQ, checkpoint: ckpt.Checkpoint, source: pathlib.Path,
         "limits": {"max_views": MAX_VIEWS, "max_queries": MAX_QUERIES},
         "graphs": {
             "backbone": {"file": "backbone.onnx", "inputs": list(BACKBONE_INPUTS) + ["key_value"],
-                         "outputs": list(BACKBONE_OUTPUTS) + list(OPERAND_NAMES)},
+                         "outputs": list(BACKBONE_OUTPUTS) + list(CACHED_OPERANDS)},
             "layer": {"file": "layer.onnx", "inputs": list(LAYER_INPUTS) + ["key_value"],
                       "outputs": list(LAYER_OUTPUTS)},
         },

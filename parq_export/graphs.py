@@ -14,12 +14,16 @@ at their own resolution and the ray MLP's hidden layer (see ``parq_export.factor
           snippet (the cached form); false leaves them empty (the folded form).
   outputs level_0..3 (N, h_l, w_l, F): FPN levels P2..P5 of every view, cached ones first;
           ray_hidden (N, h, w, C): the ray MLP's hidden layer;
+          memory (N, h, w, C) in the cached form, formed there to project the keys and
+          values and returned for the loop to sample, (0, 0, 0, C) in the folded form;
           attention_keys, attention_values: (H, S, d) in the cached form, (0, 0, d) in the
           folded form.
 
 ``layer.onnx`` (one PARQ iteration, K queries):
   inputs  query_features (K, C), query_ray_hidden (K, C), query_weight (K, 1): the query
-          content's factors (``parq_runtime.loop.sample_factors``); reference_points (K, 3)
+          content's factors (``parq_runtime.loop.sample_factors``) in the folded form; the
+          cached form reads query_features only, the sampled memory
+          (``parq_runtime.loop.sample_memory``); reference_points (K, 3)
           normalised; attention_keys, attention_values; level_0..3, ray_hidden (the folded
           form reads these; the cached form ignores them); key_value (bool scalar): the form;
   outputs center (K, 3), size (K, 3), ortho6d (K, 6), rotation (K, 3, 3), logits (K, C + 1),
@@ -34,7 +38,8 @@ from onnx import TensorProto, helper, numpy_helper
 from torch import nn
 
 from parq_runtime.model_card import level_sizes
-from parq_runtime.loop import FACTOR_NAMES, LAYER_OUTPUTS, OPERAND_NAMES, QUERY_NAMES
+from parq_runtime.loop import (FACTOR_NAMES, LAYER_OUTPUTS, MEMORY_NAME, OPERAND_NAMES,
+                               QUERY_NAMES)
 
 from . import conditional, factored
 from .model import PARQ
@@ -42,6 +47,7 @@ from .model import PARQ
 CACHED_LEVELS = tuple(f"cached_{n}" for n in FACTOR_NAMES[:-1])
 BACKBONE_INPUTS = ("images",) + CACHED_LEVELS + ("camera", "T_local_camera")
 BACKBONE_OUTPUTS = FACTOR_NAMES
+CACHED_OPERANDS = (MEMORY_NAME,) + OPERAND_NAMES
 LAYER_INPUTS = QUERY_NAMES + ("reference_points",) + OPERAND_NAMES + FACTOR_NAMES
 
 
@@ -63,9 +69,9 @@ class BackboneGraph(nn.Module):
 
 
 class CachedOperands(nn.Module):
-    """The cached form's keys and values (H, S, d), projected from the factors as
-    (1, S, C) @ (H, C, d) batched products, which write each head's block without a
-    transposed copy of the (S, C) result."""
+    """The cached form's memory (N, h, w, C), formed from the factors, and its keys and
+    values (H, S, d), projected as (1, S, C) @ (H, C, d) batched products, which write each
+    head's block without a transposed copy of the (S, C) result."""
 
     def __init__(self, model: PARQ):
         super().__init__()
@@ -80,12 +86,13 @@ class CachedOperands(nn.Module):
         tokens = memory.reshape(1, -1, C)
         W = attn.in_proj_weight.reshape(3, H, C // H, C).transpose(-1, -2)   # (3, H, C, d)
         b = attn.in_proj_bias.reshape(3, H, 1, C // H)
-        return tokens @ W[1] + b[1], tokens @ W[2] + b[2]
+        return memory, tokens @ W[1] + b[1], tokens @ W[2] + b[2]
 
 
 class LayerGraph(nn.Module):
     """One PARQ iteration on one snippet, in one form of the cross-attention: ``cached``
-    (attention_keys and attention_values) or ``folded`` (the factors)."""
+    (attention_keys and attention_values; the content is query_features, the sampled memory)
+    or ``folded`` (the factors, and the content from the sampled factors)."""
 
     def __init__(self, model: PARQ, form: str):
         super().__init__()
@@ -123,21 +130,29 @@ class LayerGraph(nn.Module):
                                             self.weights(), resize)
             return decoder.multihead_attn.out_proj(ctx.transpose(0, 1).reshape(1, K, C))
 
-        content = factored.content(query_features, query_ray_hidden, query_weight,
-                                   self.ray_out)
+        if self.form == "cached":
+            content = query_features
+        else:
+            content = factored.content(query_features, query_ray_hidden, query_weight,
+                                       self.ray_out)
         out = self.layer(content[None], reference_points[None], attend=attend)
         return tuple(out[name][0] for name in LAYER_OUTPUTS)
 
 
 def empty_operands(model: PARQ, opset: int) -> onnx.ModelProto:
-    """The folded form's branch of backbone.onnx: empty keys and values, (0, 0, d)."""
-    d = model.config.feature_dim // model.config.heads
+    """The folded form's branch of backbone.onnx: empty memory (0, 0, 0, C), keys and values
+    (0, 0, d)."""
+    C = model.config.feature_dim
+    d = C // model.config.heads
+    memory = numpy_helper.from_array(np.zeros((0, 0, 0, C), np.float32), "empty_memory")
     empty = numpy_helper.from_array(np.zeros((0, 0, d), np.float32), "empty")
     graph = helper.make_graph(
-        [helper.make_node("Constant", [], ["keys"], value=empty),
+        [helper.make_node("Constant", [], ["memory"], value=memory),
+         helper.make_node("Constant", [], ["keys"], value=empty),
          helper.make_node("Identity", ["keys"], ["values"])], "folded_operands", [],
-        [helper.make_tensor_value_info(n, TensorProto.FLOAT, [0, 0, d])
-         for n in ("keys", "values")])
+        [helper.make_tensor_value_info("memory", TensorProto.FLOAT, [0, 0, 0, C])]
+        + [helper.make_tensor_value_info(n, TensorProto.FLOAT, [0, 0, d])
+           for n in ("keys", "values")])
     return helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
 
 
@@ -151,8 +166,10 @@ def add_operands_branch(backbone: onnx.ModelProto, cached: onnx.ModelProto, mode
                         opset: int) -> onnx.ModelProto:
     """Append ``If(key_value)`` to backbone.onnx: the exported :class:`CachedOperands` when
     true, :func:`empty_operands` when false."""
+    memory = helper.make_tensor_value_info(MEMORY_NAME, TensorProto.FLOAT,
+                                           ["views", "rows", "cols", model.config.feature_dim])
     return conditional.add_if(backbone, "key_value", cached, empty_operands(model, opset),
-                              list(OPERAND_NAMES), operand_infos(model))
+                              list(CACHED_OPERANDS), [memory] + operand_infos(model))
 
 
 def join_layer_forms(cached: onnx.ModelProto, folded: onnx.ModelProto,

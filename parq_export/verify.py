@@ -14,12 +14,13 @@ import torch
 from parq_runtime import geometry
 
 from . import factored
-from .graphs import FACTOR_NAMES, LAYER_OUTPUTS, OPERAND_NAMES, QUERY_NAMES
+from .graphs import FACTOR_NAMES, LAYER_OUTPUTS, MEMORY_NAME, OPERAND_NAMES, QUERY_NAMES
 from .model import PARQ
 
 # max abs difference allowed, as a fraction of the reference's largest magnitude (at least 1)
 RELATIVE_TOLERANCE = {"level_0": 1e-4, "level_1": 1e-4, "level_2": 1e-4, "level_3": 1e-4,
-                      "ray_hidden": 1e-4, "attention_keys": 1e-4, "attention_values": 1e-4}
+                      "ray_hidden": 1e-4, "memory": 1e-4, "attention_keys": 1e-4,
+                      "attention_values": 1e-4}
 # golden tolerances: centers in metres, rotation entries, logits, sizes relative
 ABSOLUTE_TOLERANCE = {"center": 1e-4, "rotation": 1e-3, "ortho6d": 1e-3, "logits": 1e-3,
                       "next_reference_points": 1e-4, "size": 1e-3}
@@ -117,15 +118,20 @@ def check(model: PARQ, backbone_path, layer_path, seed: int = 0) -> dict:
                             backbone.run(None, {**feeds, "key_value": np.array(cached_form)})))
             for name in FACTOR_NAMES:
                 compare(f"backbone.{name}", outs[name], ref[name].numpy())
+            layer_query = query
             if cached_form:
+                compare("backbone.memory", outs[MEMORY_NAME], ref["memory"].numpy())
                 compare("backbone.attention_keys", outs["attention_keys"], ref_keys[0].numpy())
                 compare("backbone.attention_values", outs["attention_values"],
                         ref_values[0].numpy())
+                # the cached form's content is query_features alone (the sampled memory);
+                # the factors stay in the feed, and must be ignored
+                layer_query = dict(query, query_features=content.numpy())
             else:
-                empty = outs["attention_keys"].size + outs["attention_values"].size
-                note("backbone.attention_keys (folded, empty)", float(empty), 0.0)
+                empty = sum(outs[n].size for n in (MEMORY_NAME,) + OPERAND_NAMES)
+                note("backbone.memory, keys, values (folded, empty)", float(empty), 0.0)
             got = dict(zip(LAYER_OUTPUTS, layer.run(None, {
-                **query, "reference_points": points, "key_value": np.array(cached_form),
+                **layer_query, "reference_points": points, "key_value": np.array(cached_form),
                 **{n: outs[n] for n in OPERAND_NAMES + FACTOR_NAMES}})))
             form = "cached" if cached_form else "folded"
             logits = expected["logits"][0].numpy()

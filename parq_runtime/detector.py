@@ -149,8 +149,8 @@ class Detector:
         """Run backbone.onnx on new frames (Nn, h, w, 3) after frames encoded before, whose
         levels P2..P5 are ``cached_levels`` (a list of four (Nc, h_l, w_l, F) arrays, or
         None); camera and T_local_camera list the Nc + Nn views in that order.  Returns
-        (factors: level_0..3 (N, h_l, w_l, F) and ray_hidden (N, h', w', C), attention
-        operands (empty unless ``cached``))."""
+        (factors: level_0..3 (N, h_l, w_l, F) and ray_hidden (N, h', w', C), operands: the
+        memory (N, h', w', C) and the attention keys and values, empty unless ``cached``)."""
         feeds = empty_cache(self.card.feature_size, self.card.feature_dim)
         if cached_levels is not None:
             feeds = {name: np.ascontiguousarray(levels, dtype=np.float32)
@@ -165,7 +165,7 @@ class Detector:
             "T_local_camera": T_local_camera.astype(np.float32),
             "key_value": np.array(cached)})))
         return ({k: result[k] for k in loop.FACTOR_NAMES},
-                {k: result[k] for k in loop.OPERAND_NAMES})
+                {k: result[k] for k in (loop.MEMORY_NAME,) + loop.OPERAND_NAMES})
 
     def detect(self, images, intrinsics, cam_to_world, iters: int = 2, queries: int = 32,
                score_threshold: float | None = None, region: bool = True,
