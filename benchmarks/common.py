@@ -29,19 +29,28 @@ def official_checkpoint() -> pathlib.Path:
     return path
 
 
-def official_model() -> pathlib.Path:
-    """The exported official checkpoint, exported again when this package reads another
-    model format, or names other graph outputs, than the cached one's."""
+def stale(folder: pathlib.Path, sha256: str | None = None) -> bool:
+    """Whether a cached model folder must be exported again: missing, in another model format
+    than this package reads, naming other backbone outputs than the export writes now, or
+    (given ``sha256``) exported from another checkpoint."""
     import json
 
     from parq_export.graphs import BACKBONE_OUTPUTS, CACHED_OPERANDS
     from parq_runtime.model_card import CARD_VERSION
 
+    card = folder / "model.json"
+    if not card.exists():
+        return True
+    card = json.loads(card.read_text())
+    return (card.get("format_version") != CARD_VERSION
+            or card["graphs"]["backbone"]["outputs"] != list(BACKBONE_OUTPUTS + CACHED_OPERANDS)
+            or (sha256 is not None and card["checkpoint"]["sha256"] != sha256))
+
+
+def official_model() -> pathlib.Path:
+    """The exported official checkpoint, exported again when :func:`stale`."""
     out = CACHE / "official_model"
-    card = out / "model.json"
-    current = card.exists() and json.loads(card.read_text())
-    if not current or current.get("format_version") != CARD_VERSION or \
-            current["graphs"]["backbone"]["outputs"] != list(BACKBONE_OUTPUTS + CACHED_OPERANDS):
+    if stale(out):
         from parq_export.export import export
         export(official_checkpoint(), out, overwrite=True, log=lambda *_: None)
     return out

@@ -33,9 +33,8 @@ def export_pair(checkpoint, name: str, calibration) -> tuple:
     paths = []
     for quantize in (None, "int8"):
         out = common.CACHE / f"{name}_{quantize or 'fp32'}"
-        card = out / "model.json"
-        # re-export when the checkpoint changed (a re-tuned demo has new post-processing)
-        if not card.exists() or json.loads(card.read_text())["checkpoint"]["sha256"] != digest:
+        # re-export also when the checkpoint changed (a re-tuned demo has new post-processing)
+        if common.stale(out, digest):
             export(checkpoint, out, overwrite=True, quantize=quantize, calibration=calibration,
                    log=lambda *_: None)
         paths.append(out)
