@@ -66,11 +66,9 @@ def main():
     args = p.parse_args()
 
     from parq_runtime import Detector
-    from parq_export.quantize import CALIBRATION, generate_calibration
+    from parq_export.quantize import generate_calibration
 
-    calibration = common.CACHE / "calibration_320x240"
-    if not (calibration / f"scene_{CALIBRATION['scenes'] - 1:05d}" / "boxes.json").exists():
-        generate_calibration(calibration, (320, 240))
+    calibration = generate_calibration(common.CACHE / "calibration_320x240", (320, 240))
     official = export_pair(common.official_checkpoint(), "official", calibration)
     speed = backbone_times(official, args.runs)
     print(f"backbone fp32 {speed[0]['median']:.3f} s, int8 {speed[1]['median']:.3f} s",

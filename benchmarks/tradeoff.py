@@ -27,12 +27,10 @@ QUERIES = (16, 32, 64, 128)
 
 def held_out_scenes(folder: pathlib.Path, scenes: int, frames: int, size) -> list:
     from parq_synth import generate
+    from parq_synth.writer import scene_name
 
-    folder.mkdir(parents=True, exist_ok=True)
-    missing = [k for k in range(scenes) if not (folder / f"scene_{k:05d}" / "boxes.json").exists()]
-    for k in missing:
-        generate(folder, 1, HELD_OUT_SEED, frames=frames, size=size, start=k)
-    return [folder / f"scene_{k:05d}" for k in range(scenes)]
+    generate(folder, scenes, HELD_OUT_SEED, frames=frames, size=size, skip_existing=True)
+    return [folder / scene_name(k) for k in range(scenes)]
 
 
 def evaluate_setting(detector, scenes, iters, queries, score_threshold=None) -> tuple:

@@ -26,11 +26,12 @@ CALIBRATION = {"scenes": 8, "seed": 5000, "frames": 30}
 
 def generate_calibration(folder, size) -> pathlib.Path:
     """Write the default calibration scenes (CALIBRATION) at ``size`` = (w, h) into
-    ``folder``."""
+    ``folder``, keeping those already there (a cache: the same arguments write the same
+    scenes)."""
     from parq_synth import generate
 
     generate(folder, CALIBRATION["scenes"], CALIBRATION["seed"], frames=CALIBRATION["frames"],
-             size=tuple(size), overwrite=True)
+             size=tuple(size), skip_existing=True)
     return pathlib.Path(folder)
 
 

@@ -145,16 +145,26 @@ def _one(args):
 
 
 def generate(out, scenes: int, seed: int, frames: int = 60, size=(320, 240), *, start: int = 0,
-             overwrite: bool = False, jobs: int = 1, progress=None) -> list:
+             overwrite: bool = False, skip_existing: bool = False, jobs: int = 1,
+             progress=None) -> list:
     """Write scenes start .. start + scenes - 1 of ``seed`` to ``out/scene_<k>``.  Returns
-    [(index, objects, seconds, per-frame render seconds)].  ``progress`` is called with each
-    of those as scenes finish."""
+    [(index, objects, seconds, per-frame render seconds)] of the scenes written.
+    ``progress`` is called with each of those as scenes finish.  ``skip_existing``: leave the
+    scene folders already there (each is written atomically, so one that exists is whole) and
+    write only the missing ones: a cache of scenes made earlier with the same arguments."""
     check_args(seed=seed, index=start, frames=frames, size=size, scenes=scenes)
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ParqError(f"jobs must be an integer >= 1, got {jobs!r}")
+    if overwrite and skip_existing:
+        raise ParqError("overwrite and skip_existing exclude each other")
     out = ensure_writable(out)
     indices = range(start, start + scenes)
-    if not overwrite:
+    if skip_existing:
+        indices = [k for k in indices if not (out / scene_name(k)).exists()]
+        if not indices:
+            return []
+        scenes = len(indices)
+    elif not overwrite:
         existing = [scene_name(k) for k in indices if (out / scene_name(k)).exists()]
         if existing:
             raise ParqError(f"{out}: {existing[0]} already exists"

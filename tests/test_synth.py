@@ -498,6 +498,26 @@ def test_overwrite_replaces_a_scene_atomically(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s"]
 
 
+def test_skip_existing_writes_only_the_missing_scenes(tmp_path):
+    """A cache of generated scenes: kept folders are not rewritten, missing ones are written
+    exactly as a full run writes them."""
+    parq_synth.generate(tmp_path / "full", 3, 7, frames=2, size=TINY)
+    cache = tmp_path / "cache"
+    parq_synth.generate(cache, 1, 7, frames=2, size=TINY, start=1)
+    kept = (cache / "scene_00001" / "boxes.json").stat().st_mtime_ns
+    written = parq_synth.generate(cache, 3, 7, frames=2, size=TINY, skip_existing=True)
+    assert sorted(r[0] for r in written) == [0, 2]
+    assert (cache / "scene_00001" / "boxes.json").stat().st_mtime_ns == kept
+    for k in range(3):
+        name = f"scene_{k:05d}"
+        assert (cache / name / "boxes.json").read_bytes() == \
+            (tmp_path / "full" / name / "boxes.json").read_bytes()
+    assert parq_synth.generate(cache, 3, 7, frames=2, size=TINY, skip_existing=True) == []
+    with pytest.raises(ParqError, match="exclude each other"):
+        parq_synth.generate(cache, 3, 7, frames=2, size=TINY, skip_existing=True,
+                            overwrite=True)
+
+
 # ----------------------------------------------------------------------------- CLI
 
 def test_cli_writes_scenes(tmp_path, capsys):
