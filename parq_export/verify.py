@@ -14,6 +14,7 @@ import torch
 from parq_runtime import geometry
 
 from . import factored
+from .backbone import concat_levels
 from .graphs import FACTOR_NAMES, LAYER_OUTPUTS, MEMORY_NAME, OPERAND_NAMES, QUERY_NAMES
 from .model import PARQ
 
@@ -57,12 +58,13 @@ def reference_factors(model: PARQ, images: np.ndarray, camera: np.ndarray,
     level_0..3 (N, h_l, w_l, F), ray_hidden (N, h, w, C), and the memory (N, h, w, C)."""
     with torch.no_grad():
         x = torch.from_numpy(images).permute(0, 3, 1, 2).float() / 255.0
-        levels = [p.permute(0, 2, 3, 1) for p in model.backbone.levels(x)]
+        levels = model.backbone.levels(x)
         hidden = model.ray_encoder.hidden(torch.from_numpy(camera),
                                           torch.from_numpy(T_local_camera))
-        memory = model.memory(model.image_features(x[None]), torch.from_numpy(camera)[None],
+        # the backbone's forward from the same levels (one ResNet-FPN pass, not two)
+        memory = model.memory(concat_levels(levels)[None], torch.from_numpy(camera)[None],
                               torch.from_numpy(T_local_camera)[None])[0]
-    out = {f"level_{i}": p for i, p in enumerate(levels)}
+    out = {f"level_{i}": p.permute(0, 2, 3, 1) for i, p in enumerate(levels)}
     return {**out, "ray_hidden": hidden, "memory": memory}
 
 
