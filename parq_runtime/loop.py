@@ -110,15 +110,12 @@ def sample_memory(memory: np.ndarray, points_local: np.ndarray, camera: np.ndarr
     """The query content for the cached form: the memory (N, h, w, C) sampled bilinearly
     (align_corners=True, zero padding) where points_local (K, 3) project, summed over all
     views and divided by the number of views where the point is valid (at least 1), as the
-    authors do.  Returned as query_features (K, C); the cached form of layer.onnx reads nothing
-    else, so query_ray_hidden and query_weight are zeros."""
-    _, h, w, C = memory.shape
+    authors do.  Returned as query_features (K, C), all that the cached form of layer.onnx
+    reads of the content (:func:`run` feeds zeros for the other factors)."""
+    _, h, w, _ = memory.shape
     views, rows, cols, weights, count = _taps(points_local, camera, T_camera_local, (h, w))
-    K = len(points_local)
     return {"query_features": (_gather(memory, views, rows, cols, weights) / count)
-            .astype(np.float32),
-            "query_ray_hidden": np.zeros((K, C), np.float32),
-            "query_weight": np.zeros((K, 1), np.float32)}
+            .astype(np.float32)}
 
 
 def sample_factors(factors: dict, points_local: np.ndarray, camera: np.ndarray,
@@ -163,6 +160,9 @@ def run(layer_session, factors: dict, operands: dict, camera: np.ndarray,
     feeds = {**factors, **{n: operands[n] for n in OPERAND_NAMES},
              "key_value": np.array(cached)}
     ref = np.ascontiguousarray(reference_points, dtype=np.float32)
+    if cached:   # inputs the cached form ignores, set once
+        feeds["query_ray_hidden"] = np.zeros((len(ref), memory.shape[-1]), np.float32)
+        feeds["query_weight"] = np.zeros((len(ref), 1), np.float32)
     out = []
     for _ in range(iterations):
         start = time.perf_counter()
