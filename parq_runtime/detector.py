@@ -47,9 +47,7 @@ def attention_cost(form: str, views: int, feature_size: tuple, channels: int, he
     sum over heads of width d (2 K S C).  folded: per iteration every head scores and sums at
     full width over P2 and r (C / 4 + C channels on S tokens) and over each coarse level at its
     own resolution (C / 4 channels on S_l tokens); nothing is projected."""
-    from .model_card import level_sizes
-
-    sizes = level_sizes(feature_size)
+    sizes = model_card.level_sizes(feature_size)
     S = views * sizes[0][0] * sizes[0][1]
     if form == "cached":
         return 3 * S * channels ** 2 + iterations * 2 * queries * S * channels
@@ -67,10 +65,8 @@ def choose_form(views, feature_size, channels, heads, queries, iterations) -> st
 
 def empty_cache(feature_size: tuple, channels: int) -> dict:
     """backbone.onnx's cached_level_* inputs for a call with no frames encoded before."""
-    from .model_card import level_sizes
-
     return {f"cached_{name}": np.zeros((0, h, w, channels // 4), np.float32)
-            for name, (h, w) in zip(loop.FACTOR_NAMES, level_sizes(feature_size))}
+            for name, (h, w) in zip(loop.FACTOR_NAMES, model_card.level_sizes(feature_size))}
 
 
 def snippet_inputs(views, T_world_camera, feature_stride: int, up=geometry.UP_Z) -> tuple:

@@ -54,12 +54,6 @@ class ModelCard:
         return int(self.raw["feature"]["channels"])
 
     @property
-    def level_shapes(self) -> list:
-        """(h_l, w_l, channels) of the FPN levels P2..P5 that backbone.onnx returns."""
-        channels = self.feature_dim // 4
-        return [(h, w, channels) for h, w in level_sizes(self.feature_size)]
-
-    @property
     def heads(self) -> int:
         return int(self.raw["decoder"]["heads"])
 
