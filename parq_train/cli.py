@@ -91,7 +91,6 @@ def run(args, argv) -> int:
     import torch
 
     from parq_export import checkpoint
-    from parq_synth import generate
 
     from . import data, pretrain, train
     from .symmetry import folds_of_class
@@ -101,15 +100,12 @@ def run(args, argv) -> int:
     form = "fused" if args.fused_attention else "cached"   # PARQ.forward's attention form
     config = demo_config(iterations=args.iterations)
     start = time.perf_counter()
-    if not args.data.is_dir() or not any(args.data.glob("*/boxes.json")):
-        print(f"generating {args.scenes} scenes into {args.data} ...", file=sys.stderr)
-        generate(args.data, args.scenes, TRAIN_SEED, frames=args.frames,
-                 size=tuple(config.image_size), jobs=args.jobs)
-    generated = time.perf_counter() - start
     log = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
-    snippets = data.load_scenes(args.data, config, log=log)
+    folders = data.training_scenes(args.data, args.scenes, TRAIN_SEED, args.frames,
+                                   config.image_size, jobs=args.jobs, log=log)
+    generated = time.perf_counter() - start
+    snippets = data.load_scenes(folders, config, log=log)
     model = train.new_model(config, args.seed, snippets)
-    folders = sorted(p.parent for p in args.data.glob("*/boxes.json"))
     pre_history = pretrain.pretrain(model.backbone, config, folders, args.pretrain_steps,
                                     args.seed, log=log, log_every=500) \
         if args.pretrain_steps else []

@@ -108,10 +108,43 @@ def visible(centers_world, sizes, T_world_camera, depths, margin: float = 0.1) -
     return seen
 
 
-def load_scenes(root, config, views: int = 3, stride: int = 1, log=print) -> list:
-    folders = sorted(p for p in pathlib.Path(root).iterdir() if (p / "boxes.json").is_file())
-    if not folders:
-        raise ParqError(f"{root}: no generated scenes (folders with boxes.json)")
+def training_scenes(root, scenes: int, seed: int, frames: int, size, jobs: int = 1,
+                    log=print) -> list:
+    """Folders ``root/scene_00000 .. scene_<scenes - 1>`` of parq-synth ``seed``, generating the
+    ones missing.  A folder made with other arguments (seed, frames, size) is an error, not a
+    silent change of the training set: a cache made for one recipe never trains another."""
+    from parq_synth import generate
+    from parq_synth.writer import scene_name
+
+    root = pathlib.Path(root)
+    made = generate(root, scenes, seed, frames=frames, size=tuple(size), jobs=jobs,
+                    skip_existing=True)
+    if made:
+        log(f"generated {len(made)} scenes into {root}")
+    folders = [root / scene_name(k) for k in range(scenes)]
+    want = {"seed": seed, "frames": frames, "width": int(size[0]), "height": int(size[1])}
+    for folder in folders:
+        try:
+            info = json.loads((folder / "scene.json").read_text())
+        except (OSError, ValueError) as e:
+            raise ParqError(f"{folder}: unreadable scene.json ({e}); remove the folder to "
+                            f"regenerate it") from None
+        have = {k: info.get(k) for k in want}
+        if have != want:
+            diff = ", ".join(f"{k} {have[k]} (wanted {want[k]})" for k in want
+                             if have[k] != want[k])
+            raise ParqError(f"{folder}: made with other arguments: {diff}; pass another "
+                            f"--data folder")
+    return folders
+
+
+def load_scenes(folders, config, views: int = 3, stride: int = 1, log=print) -> list:
+    """Snippets of every scene folder (a list, or a root whose subfolders hold boxes.json)."""
+    if isinstance(folders, (str, pathlib.Path)):
+        root = folders
+        folders = sorted(p for p in pathlib.Path(root).iterdir() if (p / "boxes.json").is_file())
+        if not folders:
+            raise ParqError(f"{root}: no generated scenes (folders with boxes.json)")
     snippets = []
     for folder in folders:
         snippets += scene_snippets(folder, config, views, stride)

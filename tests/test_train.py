@@ -162,3 +162,22 @@ def test_backbone_learning_rate_scale_zero_freezes_only_the_backbone():
     assert weights and all(torch.equal(after[k], before[k]) for k in weights)
     assert not torch.equal(after["layer.decoder.linear1.weight"],
                            before["layer.decoder.linear1.weight"])
+
+
+def test_training_scenes_complete_a_cache_and_refuse_one_made_otherwise(tmp_path):
+    """parq-train's data folder: missing scenes are generated, scenes made with other
+    arguments (here: other frame counts) are an error naming the folder, not silently used."""
+    import pytest
+
+    from parq_runtime.errors import ParqError
+    from parq_train.data import training_scenes
+
+    root = tmp_path / "train"
+    first = training_scenes(root, 1, seed=7, frames=2, size=(32, 24), log=lambda *_: None)
+    before = (first[0] / "pose" / "0.txt").read_bytes()
+    both = training_scenes(root, 2, seed=7, frames=2, size=(32, 24), log=lambda *_: None)
+    assert [f.name for f in both] == ["scene_00000", "scene_00001"]
+    assert (both[0] / "pose" / "0.txt").read_bytes() == before
+    with pytest.raises(ParqError, match=r"scene_00000: made with other arguments: frames 2 "
+                                        r"\(wanted 3\)"):
+        training_scenes(root, 2, seed=7, frames=3, size=(32, 24), log=lambda *_: None)
