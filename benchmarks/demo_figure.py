@@ -20,12 +20,17 @@ import common
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", default=str(common.ROOT / "models" / "parq-demo"))
-    p.add_argument("--scene", default=str(common.ROOT / "models" / "parq-demo" / "sample-scene"))
+    p.add_argument("--model", default=str(common.ROOT / "models" / "parq-demo"),
+                   help="model folder to run (default models/parq-demo)")
+    p.add_argument("--scene", default=str(common.ROOT / "models" / "parq-demo" / "sample-scene"),
+                   help="capture folder to draw (default the demo's sample scene)")
     p.add_argument("--out", default=str(common.ROOT / "models" / "parq-demo"
-                                         / "sample-scene-overlay.png"))
-    p.add_argument("--iters", type=int, default=2)
-    p.add_argument("--queries", type=int, default=32)
+                                         / "sample-scene-overlay.png"),
+                   help="PNG to write (default the demo's sample-scene-overlay.png)")
+    p.add_argument("--iters", type=int, default=2,
+                   help="recurrent iterations (default 2)")
+    p.add_argument("--queries", type=int, default=32,
+                   help="queries (default 32)")
     args = p.parse_args()
 
     from parq_runtime import Detector, evaluation, readers, scene, visualize

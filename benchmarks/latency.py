@@ -113,12 +113,15 @@ def rss_only(system: str, threads) -> None:
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--runs", type=int, default=5)
-    p.add_argument("--warmup", type=int, default=1)
+    p.add_argument("--runs", type=int, default=5,
+                   help="timed runs per setting after warm-up (default 5)")
+    p.add_argument("--warmup", type=int, default=1,
+                   help="untimed warm-up runs per setting (default 1)")
     p.add_argument("--threads", type=int, default=None,
                    help="threads for both systems (default: onnxruntime's and torch's own)")
     p.add_argument("--rss-only", choices=("runtime", "reference"), help=argparse.SUPPRESS)
-    p.add_argument("--out", default=str(common.RESULTS / "latency"))
+    p.add_argument("--out", default=str(common.RESULTS / "latency"),
+                   help="output stem: .md, .csv, .json, .png (default results/latency)")
     args = p.parse_args()
     if args.rss_only:
         return rss_only(args.rss_only, args.threads)

@@ -56,9 +56,12 @@ def detector(model_dir, threads, spinning, level):
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--runs", type=int, default=5)
-    p.add_argument("--warmup", type=int, default=1)
-    p.add_argument("--out", default=str(common.RESULTS / "session_options"))
+    p.add_argument("--runs", type=int, default=5,
+                   help="timed runs per option set after warm-up (default 5)")
+    p.add_argument("--warmup", type=int, default=1,
+                   help="untimed warm-up runs (default 1)")
+    p.add_argument("--out", default=str(common.RESULTS / "session_options"),
+                   help="output stem: .md, .json (default results/session_options)")
     args = p.parse_args()
 
     images, K, T = common.golden_snippet()

@@ -58,11 +58,16 @@ def one_pass(det, keyframes, queries, iters, streaming: bool) -> list:
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--frames", type=int, default=12)
-    p.add_argument("--passes", type=int, default=3)
-    p.add_argument("--queries", type=int, default=32)
-    p.add_argument("--iters", type=int, default=2)
-    p.add_argument("--out", default=str(common.RESULTS / "streaming"))
+    p.add_argument("--frames", type=int, default=12,
+                   help="keyframes in the streamed video (default 12)")
+    p.add_argument("--passes", type=int, default=3,
+                   help="timed passes over the video (default 3)")
+    p.add_argument("--queries", type=int, default=32,
+                   help="queries (default 32)")
+    p.add_argument("--iters", type=int, default=2,
+                   help="recurrent iterations (default 2)")
+    p.add_argument("--out", default=str(common.RESULTS / "streaming"),
+                   help="output stem: .md, .json (default results/streaming)")
     args = p.parse_args()
 
     from parq_runtime import Detector

@@ -50,12 +50,17 @@ def evaluate_setting(detector, scenes, iters, queries, score_threshold=None) -> 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", default=str(common.ROOT / "models" / "parq-demo"))
-    p.add_argument("--scenes", type=int, default=40)
-    p.add_argument("--frames", type=int, default=60)
+    p.add_argument("--model", default=str(common.ROOT / "models" / "parq-demo"),
+                   help="model folder to measure (default models/parq-demo)")
+    p.add_argument("--scenes", type=int, default=40,
+                   help="held-out scenes (parq-synth seed 3000) to score (default 40)")
+    p.add_argument("--frames", type=int, default=60,
+                   help="frames per held-out scene (default 60)")
     p.add_argument("--size", default="160x120", help="rendered frame size (default 160x120)")
-    p.add_argument("--threads", type=int, default=None)
-    p.add_argument("--out", default=str(common.RESULTS / "tradeoff"))
+    p.add_argument("--threads", type=int, default=None,
+                   help="onnxruntime threads (default: its own choice)")
+    p.add_argument("--out", default=str(common.RESULTS / "tradeoff"),
+                   help="output stem: .md, .csv, .json, .png (default results/tradeoff)")
     args = p.parse_args()
 
     from parq_runtime import Detector
