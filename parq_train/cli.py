@@ -2,8 +2,8 @@
 
     parq-train demo.pt --seed 0
 
-generates the training scenes (parq-synth, seeds of the ``train`` range) into --data unless
-they are there already, trains the demo configuration for --steps steps and writes a
+generates the training scenes (parq-synth, seeds of the ``train`` range) into --data, the
+ones not there already (a folder made with other frame counts or sizes is refused), trains the demo configuration for --steps steps and writes a
 checkpoint in this package's format whose config records how it was made (command, seed, data,
 duration); ``parq-export`` copies that record into the model card.
 """
@@ -44,14 +44,16 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("output", type=pathlib.Path, help="checkpoint to write (.pt)")
     p.add_argument("--seed", type=integer, default=0, help="training seed (default 0)")
     p.add_argument("--data", type=pathlib.Path, default=pathlib.Path("data/train"),
-                   help="folder of training scenes; generated when missing (default "
-                        "data/train)")
-    p.add_argument("--scenes", type=positive_int, default=400,
-                   help="training scenes to generate when --data is missing (default 400)")
+                   help="folder of training scenes, completed when scenes are missing; "
+                        "scenes made with another --frames are an error (default data/train)")
+    p.add_argument("--scenes", type=positive_int, default=1600,
+                   help="training scenes: parq-synth scenes 0..N-1 of the training seed, the "
+                        "missing ones generated into --data (default 1600)")
     p.add_argument("--jobs", type=positive_int, default=os.cpu_count() or 1,
                    help="processes generating scenes (default: one per core)")
-    p.add_argument("--frames", type=positive_int, default=60,
-                   help="frames per scene (default 60)")
+    p.add_argument("--frames", type=positive_int, default=30,
+                   help="frames per training scene (default 30: more short scenes, not fewer "
+                        "long ones, generalise better; see the README)")
     p.add_argument("--pretrain-steps", type=non_negative_int, default=8000,
                    help="backbone pretraining steps on depth and object classes, the stand-in "
                         "for ImageNet weights (default 8000; 0 skips it)")
