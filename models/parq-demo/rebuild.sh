@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
-# Rebuilds the demo model from nothing, on 2 CPU cores (about 80 minutes), into
+# Rebuilds the demo model from nothing, on 2 CPU cores (about 90 minutes), into
 # work/parq-demo; compare it with models/parq-demo with benchmarks/tradeoff.py --model.
 # Needs: pip install -e ".[export,test]".  Seeds: training scenes 1000, validation 2000,
 # held-out (reported numbers) 3000, sample scene 4000; training seed 0.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
-parq-synth data/train --scenes 400 --seed 1000 --frames 60 --width 160 --height 120 --jobs 2 --quiet
 parq-synth data/val --scenes 40 --seed 2000 --frames 60 --width 160 --height 120 --jobs 2 --quiet
-parq-train work/demo.pt --seed 0 --data data/train
+# generates its 1600 training scenes of 30 frames into data/train1600, then trains
+parq-train work/demo.pt --seed 0 --data data/train1600 --scenes 1600 --frames 30 --jobs 2
 python -m parq_train.tune work/demo.pt --data data/val -o work/demo-tuned.pt
 parq-export work/demo-tuned.pt -o work/parq-demo --force
