@@ -35,7 +35,7 @@ def stale(folder: pathlib.Path, sha256: str | None = None) -> bool:
     (given ``sha256``) exported from another checkpoint."""
     import json
 
-    from parq_export.graphs import BACKBONE_OUTPUTS, CACHED_OPERANDS
+    from parq_export.graphs import BACKBONE_GRAPH_OUTPUTS
     from parq_runtime.model_card import CARD_VERSION
 
     card = folder / "model.json"
@@ -43,7 +43,7 @@ def stale(folder: pathlib.Path, sha256: str | None = None) -> bool:
         return True
     card = json.loads(card.read_text())
     return (card.get("format_version") != CARD_VERSION
-            or card["graphs"]["backbone"]["outputs"] != list(BACKBONE_OUTPUTS + CACHED_OPERANDS)
+            or card["graphs"]["backbone"]["outputs"] != list(BACKBONE_GRAPH_OUTPUTS)
             or (sha256 is not None and card["checkpoint"]["sha256"] != sha256))
 
 

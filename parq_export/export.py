@@ -31,9 +31,9 @@ from parq_runtime.model_card import CARD_FORMAT, CARD_VERSION, METADATA_KEY
 from . import checkpoint as ckpt
 from . import verify
 from . import factored
-from .graphs import (BACKBONE_INPUTS, BACKBONE_OUTPUTS, CACHED_LEVELS, CACHED_OPERANDS,
-                     FACTOR_NAMES, LAYER_INPUTS, LAYER_OUTPUTS, BackboneGraph, CachedOperands,
-                     LayerGraph, add_operands_branch, join_layer_forms)
+from .graphs import (BACKBONE_GRAPH_OUTPUTS, BACKBONE_INPUTS, BACKBONE_OUTPUTS, CACHED_LEVELS,
+                     CACHED_OPERANDS, FACTOR_NAMES, LAYER_INPUTS, LAYER_OUTPUTS, BackboneGraph,
+                     CachedOperands, LayerGraph, add_operands_branch, join_layer_forms)
 from .model import PARQ
 
 DEFAULT_OPSET = 18
@@ -169,7 +169,7 @@ def build_card(model: PARQ, checkpoint: ckpt.Checkpoint, source: pathlib.Path,
         "limits": {"max_views": MAX_VIEWS, "max_queries": MAX_QUERIES},
         "graphs": {
             "backbone": {"file": "backbone.onnx", "inputs": list(BACKBONE_INPUTS) + ["key_value"],
-                         "outputs": list(BACKBONE_OUTPUTS) + list(CACHED_OPERANDS)},
+                         "outputs": list(BACKBONE_GRAPH_OUTPUTS)},
             "layer": {"file": "layer.onnx", "inputs": list(LAYER_INPUTS) + ["key_value"],
                       "outputs": list(LAYER_OUTPUTS)},
         },

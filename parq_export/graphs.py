@@ -48,6 +48,8 @@ CACHED_LEVELS = tuple(f"cached_{n}" for n in FACTOR_NAMES[:-1])
 BACKBONE_INPUTS = ("images",) + CACHED_LEVELS + ("camera", "T_local_camera")
 BACKBONE_OUTPUTS = FACTOR_NAMES
 CACHED_OPERANDS = (MEMORY_NAME,) + OPERAND_NAMES
+# backbone.onnx's outputs once the cached form's If is merged in: what model.json lists
+BACKBONE_GRAPH_OUTPUTS = BACKBONE_OUTPUTS + CACHED_OPERANDS
 LAYER_INPUTS = QUERY_NAMES + ("reference_points",) + OPERAND_NAMES + FACTOR_NAMES
 
 
