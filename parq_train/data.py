@@ -138,13 +138,8 @@ def training_scenes(root, scenes: int, seed: int, frames: int, size, jobs: int =
     return folders
 
 
-def load_scenes(folders, config, views: int = 3, stride: int = 1, log=print) -> list:
-    """Snippets of every scene folder (a list, or a root whose subfolders hold boxes.json)."""
-    if isinstance(folders, (str, pathlib.Path)):
-        root = folders
-        folders = sorted(p for p in pathlib.Path(root).iterdir() if (p / "boxes.json").is_file())
-        if not folders:
-            raise ParqError(f"{root}: no generated scenes (folders with boxes.json)")
+def load_scenes(folders: list, config, views: int = 3, stride: int = 1, log=print) -> list:
+    """Snippets of every scene folder (from :func:`training_scenes`)."""
     snippets = []
     for folder in folders:
         snippets += scene_snippets(folder, config, views, stride)
