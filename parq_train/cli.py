@@ -3,9 +3,10 @@
     parq-train demo.pt --seed 0
 
 generates the training scenes (parq-synth, seeds of the ``train`` range) into --data, the
-ones not there already (a folder made with other frame counts or sizes is refused), trains the demo configuration for --steps steps and writes a
-checkpoint in this package's format whose config records how it was made (command, seed, data,
-duration); ``parq-export`` copies that record into the model card.
+ones not there already (a folder made with other frame counts or sizes is refused), trains the
+demo configuration for --steps steps and writes a checkpoint in this package's format whose
+config records how it was made (command, seed, data, duration); ``parq-export`` copies that
+record into the model card.
 """
 from __future__ import annotations
 
