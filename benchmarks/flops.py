@@ -80,14 +80,11 @@ def layer(config, views, queries, form) -> float:
                      + C * (len(config.classes) + 1 + 3 + 3 + 6))
     dense += 2 * 2 * H * K * K * d             # self-attention scores and sum
     if form == "folded":
-        # factored: P2 and the ray MLP's hidden layer (C / 4 + C wide) on S tokens, the coarse
-        # levels (C / 4 wide) at their own resolution, the W2-folded maps; the resizes of the
+        # factored (detector.folded_width), then the W2-folded maps; the resizes of the
         # score and weight maps are not counted (elementwise-sized).
-        from parq_runtime.model_card import level_sizes
+        from parq_runtime.detector import folded_width
 
-        sizes = level_sizes(config.feature_size)
-        coarse = sum(views * h * w for h, w in sizes[1:])
-        attention = 2 * 2 * H * K * (S * (C // 4 + C) + coarse * C // 4) \
+        attention = 2 * 2 * H * K * folded_width(views, config.feature_size, C) \
             + 2 * 2 * H * K * d * 2 * C + 2 * K * C * C     # maps; W2 on the query content
     else:
         attention = 2 * 2 * K * S * C + 2 * 2 * H * K * d * d

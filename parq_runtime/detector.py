@@ -47,13 +47,21 @@ def attention_cost(form: str, views: int, feature_size: tuple, channels: int, he
     sum over heads of width d (2 K S C).  folded: per iteration every head scores and sums at
     full width over P2 and r (C / 4 + C channels on S tokens) and over each coarse level at its
     own resolution (C / 4 channels on S_l tokens); nothing is projected."""
+    if form == "cached":
+        h, w = model_card.level_sizes(feature_size)[0]
+        S = views * h * w
+        return 3 * S * channels ** 2 + iterations * 2 * queries * S * channels
+    return iterations * 2 * heads * queries * folded_width(views, feature_size, channels)
+
+
+def folded_width(views: int, feature_size: tuple, channels: int) -> int:
+    """Channels x tokens that one head of the folded form scores (and sums) per query: P2 and
+    the ray MLP's hidden layer on P2's S tokens (C / 4 + C wide) and each coarse level at its
+    own resolution (C / 4 wide).  benchmarks/flops.py counts the layer with it too."""
     sizes = model_card.level_sizes(feature_size)
     S = views * sizes[0][0] * sizes[0][1]
-    if form == "cached":
-        return 3 * S * channels ** 2 + iterations * 2 * queries * S * channels
-    tokens_by_width = S * (channels // 4 + channels) \
+    return S * (channels // 4 + channels) \
         + sum(views * h * w for h, w in sizes[1:]) * (channels // 4)
-    return iterations * 2 * heads * queries * tokens_by_width
 
 
 def choose_form(views, feature_size, channels, heads, queries, iterations) -> str:

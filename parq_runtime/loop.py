@@ -14,6 +14,7 @@ it directly (``sample_memory``: 4 taps of C channels instead of 52 taps of the f
 """
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 
@@ -54,13 +55,18 @@ def normalize(points: np.ndarray, scale) -> np.ndarray:
     return (points - scale[0::2]) / (scale[1::2] - scale[0::2])
 
 
+@functools.lru_cache(maxsize=32)
 def resize_taps(size_out: int, size_in: int) -> tuple:
     """Bilinear resize along one axis, align_corners=False (F.interpolate's rule): output
-    index i reads inputs lo[i] and hi[i] with weights 1 - frac[i] and frac[i]."""
+    index i reads inputs lo[i] and hi[i] with weights 1 - frac[i] and frac[i].  Cached (a
+    model has three coarse levels on two axes) and returned read-only."""
     src = np.maximum((np.arange(size_out) + 0.5) * (size_in / size_out) - 0.5, 0.0)
     lo = np.floor(src).astype(np.int64)
     hi = np.minimum(lo + 1, size_in - 1)
-    return lo, hi, (src - lo).astype(np.float32)
+    taps = lo, hi, (src - lo).astype(np.float32)
+    for a in taps:
+        a.flags.writeable = False
+    return taps
 
 
 def _gather(tokens: np.ndarray, view, row, col, weight) -> np.ndarray:

@@ -195,3 +195,24 @@ def test_streaming_reuses_features_and_changes_nothing(tiny_model, form):
         for a, b in zip(streamed.iterations, scratch.iterations):
             np.testing.assert_allclose(a.center, b.center, atol=1e-5)
             np.testing.assert_allclose(a.logits, b.logits, atol=1e-4)
+
+
+def test_attention_form_is_the_one_with_fewer_multiply_adds():
+    """The authors' configuration (3 views, 80 x 60 features, C = 1024, 4 heads), counted here
+    from scratch: the folded form scores P2 and the ray hidden layer (C/4 + C channels) on
+    14,400 tokens and the coarse levels (40x30, 20x15, 10x8; C/4 channels) per head; the cached
+    one pays W2 and the key/value projections once (3 S C^2), then 2 K S C per iteration."""
+    from parq_runtime.detector import attention_cost, choose_form
+
+    S, C, H = 3 * 80 * 60, 1024, 4
+    width = S * (C // 4 + C) + 3 * (40 * 30 + 20 * 15 + 10 * 8) * (C // 4)
+    for queries, iterations in ((16, 1), (32, 2), (64, 8), (256, 1), (256, 8)):
+        folded = iterations * 2 * H * queries * width
+        cached = 3 * S * C * C + iterations * 2 * queries * S * C
+        args = (3, (80, 60), C, H, queries, iterations)
+        assert attention_cost("folded", *args) == folded
+        assert attention_cost("cached", *args) == cached
+        assert choose_form(*args) == ("cached" if cached < folded else "folded")
+    # the README's crossovers: 32 queries fold up to 11 iterations; 256 fold only for one
+    assert [choose_form(3, (80, 60), C, H, 32, n) for n in (11, 12)] == ["folded", "cached"]
+    assert [choose_form(3, (80, 60), C, H, 256, n) for n in (1, 2)] == ["folded", "cached"]
