@@ -38,7 +38,8 @@ VISIBILITY_BINS = (0, 1, 200, 800, 3000)     # pixel-count bins' lower edges
 IOUS = (0.25, 0.5)
 
 
-def instance_pixels(folder: pathlib.Path, frame_names: list, count: int, masks: dict) -> np.ndarray:
+def instance_pixels(folder: pathlib.Path, frame_names: list, count: int,
+                    masks: dict) -> np.ndarray:
     """(count,) pixels of each ground-truth box summed over the frames' instance masks
     (value 1 + j marks boxes[j]); ``masks`` caches the masks read."""
     import cv2
