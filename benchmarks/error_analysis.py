@@ -32,7 +32,7 @@ import sys
 import numpy as np
 
 import common
-from tradeoff import HELD_OUT_SEED, held_out_scenes
+from tradeoff import HELD_OUT_SEED, add_scene_arguments, scenes_from_arguments
 
 VISIBILITY_BINS = (0, 1, 200, 800, 3000)     # pixel-count bins' lower edges
 IOUS = (0.25, 0.5)
@@ -184,13 +184,7 @@ def markdown(results: list, args, pixels: int) -> str:
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", default=str(common.ROOT / "models" / "parq-demo"),
-                   help="model folder to analyse (default models/parq-demo)")
-    p.add_argument("--scenes", type=int, default=40,
-                   help="held-out scenes (parq-synth seed 3000) to use (default 40)")
-    p.add_argument("--frames", type=int, default=60,
-                   help="frames per held-out scene (default 60, as tradeoff.py)")
-    p.add_argument("--size", default="160x120", help="rendered frame size (default 160x120)")
+    add_scene_arguments(p, "analyse")
     p.add_argument("--settings", default="2x32,8x64",
                    help="comma-separated iterations x queries (default 2x32,8x64: parq-run's "
                         "defaults and the best of the trade-off table)")
@@ -203,10 +197,8 @@ def main():
 
     from parq_runtime import Detector
 
-    size = tuple(int(v) for v in args.size.split("x"))
     detector = Detector(args.model)
-    folders = held_out_scenes(common.CACHE / f"held_out_{args.size}", args.scenes, args.frames,
-                              size)
+    folders, size = scenes_from_arguments(args)
     results = []
     for setting in args.settings.split(","):
         iters, queries = (int(v) for v in setting.split("x"))

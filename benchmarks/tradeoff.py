@@ -25,6 +25,27 @@ ITERATIONS = (1, 2, 4, 8)
 QUERIES = (16, 32, 64, 128)
 
 
+def add_scene_arguments(p: argparse.ArgumentParser, use: str) -> None:
+    """--model, --scenes, --frames, --size: the demo model and the held-out scenes a script
+    ``use``s (this one and error_analysis.py read them with :func:`scenes_from_arguments`)."""
+    p.add_argument("--model", default=str(common.ROOT / "models" / "parq-demo"),
+                   help=f"model folder to {use} (default models/parq-demo)")
+    p.add_argument("--scenes", type=int, default=40,
+                   help=f"held-out scenes (parq-synth seed {HELD_OUT_SEED}) to score "
+                        "(default 40)")
+    p.add_argument("--frames", type=int, default=60,
+                   help="frames per held-out scene (default 60)")
+    p.add_argument("--size", default="160x120", help="rendered frame size (default 160x120)")
+
+
+def scenes_from_arguments(args) -> tuple:
+    """(held-out scene folders, generated where missing, (width, height)) from the
+    arguments of :func:`add_scene_arguments`."""
+    size = tuple(int(v) for v in args.size.split("x"))
+    return held_out_scenes(common.CACHE / f"held_out_{args.size}", args.scenes, args.frames,
+                           size), size
+
+
 def held_out_scenes(folder: pathlib.Path, scenes: int, frames: int, size) -> list:
     from parq_synth import generate
     from parq_synth.writer import scene_name
@@ -50,13 +71,7 @@ def evaluate_setting(detector, scenes, iters, queries, score_threshold=None) -> 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", default=str(common.ROOT / "models" / "parq-demo"),
-                   help="model folder to measure (default models/parq-demo)")
-    p.add_argument("--scenes", type=int, default=40,
-                   help="held-out scenes (parq-synth seed 3000) to score (default 40)")
-    p.add_argument("--frames", type=int, default=60,
-                   help="frames per held-out scene (default 60)")
-    p.add_argument("--size", default="160x120", help="rendered frame size (default 160x120)")
+    add_scene_arguments(p, "measure")
     p.add_argument("--threads", type=int, default=None,
                    help="onnxruntime threads (default: its own choice)")
     p.add_argument("--out", default=str(common.RESULTS / "tradeoff"),
@@ -65,11 +80,9 @@ def main():
 
     from parq_runtime import Detector
 
-    size = tuple(int(v) for v in args.size.split("x"))
     det = Detector(args.model, threads=args.threads)
     learned = len(det.card.reference_points)
-    scenes = held_out_scenes(common.CACHE / f"held_out_{args.size}", args.scenes, args.frames,
-                             size)
+    scenes, _ = scenes_from_arguments(args)
     # Warm-up pass, not reported: the first setting would otherwise pay for reading the
     # scenes from a cold disk cache (18 ms per snippet instead of 13 at 1 x 16).
     evaluate_setting(det, scenes, 1, min(QUERIES))
