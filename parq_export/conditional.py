@@ -38,6 +38,15 @@ def _branch(proto: onnx.ModelProto, prefix: str, outer: onnx.GraphProto, stored:
             return n
         return rename.setdefault(n, prefix + n)
 
+    # An output produced by a node of the branch is written there under its outer name.  An
+    # Identity would do the same, but onnxruntime keeps it (a copy of the whole tensor, 28 ms
+    # for the authors' memory) when the branch also reads the tensor, as the cached form reads
+    # the memory it returns.
+    produced = {o for node in g.node for o in node.output}
+    for out, target in zip(g.output, outputs):
+        if out.name in produced and out.name not in rename:
+            rename[out.name] = prefix + "out/" + target
+
     nodes = []
     for node in g.node:
         if any(a.type in (onnx.AttributeProto.GRAPH, onnx.AttributeProto.GRAPHS)
@@ -51,8 +60,10 @@ def _branch(proto: onnx.ModelProto, prefix: str, outer: onnx.GraphProto, stored:
         nodes.append(new)
     outs = []
     for out, target in zip(g.output, outputs):
-        # An If branch's outputs must be produced inside it: pass-throughs get an Identity.
-        nodes.append(helper.make_node("Identity", [name(out.name)], [prefix + "out/" + target]))
+        if name(out.name) != prefix + "out/" + target:
+            # An If branch's outputs must be produced inside it: pass-throughs get an Identity.
+            nodes.append(helper.make_node("Identity", [name(out.name)],
+                                          [prefix + "out/" + target]))
         info = onnx.ValueInfoProto()
         info.CopyFrom(out)
         info.name = prefix + "out/" + target
