@@ -72,8 +72,13 @@ class BackboneGraph(nn.Module):
 
 class CachedOperands(nn.Module):
     """The cached form's memory (N, h, w, C), formed from the factors, and its keys and
-    values (H, S, d), projected as (1, S, C) @ (H, C, d) batched products, which write each
-    head's block without a transposed copy of the (S, C) result."""
+    values (H, S, d) without biases (see ``DecoderLayer.attention_operands``).
+
+    Each is one (S, C) @ (C, C) product, then a transposed copy to (H, S, d).  onnxruntime
+    packs a constant 2-D right operand once, at load; the (1, S, C) @ (H, C, d) batched
+    product used before packs it at every call.  For the authors' configuration the two
+    products and their copies take 205-216 ms on this machine's 2 cores, the batched products
+    226-243 ms (``benchmarks/results/latency.md`` has the whole backbone)."""
 
     def __init__(self, model: PARQ):
         super().__init__()
@@ -82,13 +87,15 @@ class CachedOperands(nn.Module):
     def forward(self, level_0, level_1, level_2, level_3, ray_hidden):
         memory = factored.memory([level_0, level_1, level_2, level_3], ray_hidden,
                                  self.model.ray_encoder.mlp[2])
-        attn = self.model.layer.decoder.multihead_attn
+        W = self.model.layer.decoder.multihead_attn.in_proj_weight
         C = memory.shape[-1]
         H = self.model.config.heads
-        tokens = memory.reshape(1, -1, C)
-        W = attn.in_proj_weight.reshape(3, H, C // H, C).transpose(-1, -2)   # (3, H, C, d)
-        b = attn.in_proj_bias.reshape(3, H, 1, C // H)
-        return memory, tokens @ W[1] + b[1], tokens @ W[2] + b[2]
+        tokens = memory.reshape(-1, C)                                       # (S, C)
+
+        def heads(projected):                                                # (S, C) -> (H, S, d)
+            return projected.reshape(-1, H, C // H).transpose(0, 1)
+
+        return memory, heads(tokens @ W[C:2 * C].T), heads(tokens @ W[2 * C:].T)
 
 
 class LayerGraph(nn.Module):
@@ -123,8 +130,9 @@ class LayerGraph(nn.Module):
             if self.form == "cached":
                 d = C // H
                 eye = torch.eye(d, dtype=y.dtype).expand(H, d, d)
+                value_bias = decoder.multihead_attn.in_proj_bias[2 * C:].reshape(H, 1, d)
                 return decoder.cross_attention(y, attention_keys[None], attention_values[None],
-                                               eye, eye, y.new_zeros(H, 1, d))
+                                               eye, eye, value_bias)
             resize = [(getattr(self, f"rows_{i}"), getattr(self, f"cols_{i}"))
                       for i in range(3)]
             ctx = factored.folded_attention(decoder.cross_queries(y)[0],

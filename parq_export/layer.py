@@ -103,26 +103,37 @@ class DecoderLayer(nn.Module):
         ctx = torch.softmax(q @ k.transpose(-1, -2), -1) @ v
         return self.self_attn.out_proj(ctx.transpose(1, 2).reshape(B, K, C))
 
-    def attention_operands(self, memory: torch.Tensor, cached: bool, fused: bool = False):
+    def attention_operands(self, memory: torch.Tensor, cached: bool, fused: bool = False,
+                           token_bias: bool = True):
         """Per-snippet operands of the cross-attention, memory (B, S, C) ->
         keys (B, Hk, S, Dk), values (B, Hk, S, Dv), key_map (H, d, Dk), value_map (H, Dv, d),
         value_bias (H, 1, d).  Cached: Hk = H, Dk = Dv = d, identity maps (None when
         ``fused``: the fused kernel needs none).  Folded: Hk = 1,
-        Dk = Dv = C, the memory itself with W_k,h and W_v,h^T as maps."""
+        Dk = Dv = C, the memory itself with W_k,h and W_v,h^T as maps.
+
+        ``token_bias`` False (the exported cached form) leaves the biases off the S tokens:
+        the key bias b_k adds q_h . b_k,h to every score of a query, which softmax removes, and
+        the value bias is added once to the weighted sum, whose weights sum to 1.  Both are
+        exact up to rounding and save two passes over (S, C) per snippet.  Training keeps the
+        authors' arithmetic (True), so that a seeded run gives the same model as before."""
         C = memory.shape[-1]
         H, d = self.heads, C // self.heads
         W, b = self.multihead_attn.in_proj_weight, self.multihead_attn.in_proj_bias
+        value_bias = b[2 * C:].reshape(H, 1, d)
         if cached:
             B, S, _ = memory.shape
-            keys = F.linear(memory, W[C:2 * C], b[C:2 * C]).view(B, S, H, d).transpose(1, 2)
-            values = F.linear(memory, W[2 * C:], b[2 * C:]).view(B, S, H, d).transpose(1, 2)
+            b_k, b_v = (b[C:2 * C], b[2 * C:]) if token_bias else (None, None)
+            keys = F.linear(memory, W[C:2 * C], b_k).view(B, S, H, d).transpose(1, 2)
+            values = F.linear(memory, W[2 * C:], b_v).view(B, S, H, d).transpose(1, 2)
+            if token_bias:
+                value_bias = memory.new_zeros(H, 1, d)
             if fused:
-                return keys, values, None, None, memory.new_zeros(H, 1, d)
+                return keys, values, None, None, value_bias
             eye = torch.eye(d, dtype=memory.dtype, device=memory.device).expand(H, d, d)
-            return keys, values, eye, eye, memory.new_zeros(H, 1, d)
+            return keys, values, eye, eye, value_bias
         keys = memory[:, None]
         return (keys, keys, W[C:2 * C].reshape(H, d, C),
-                W[2 * C:].reshape(H, d, C).transpose(1, 2), b[2 * C:].reshape(H, 1, d))
+                W[2 * C:].reshape(H, d, C).transpose(1, 2), value_bias)
 
     def cross_queries(self, x: torch.Tensor) -> torch.Tensor:
         """x (B, K, C) -> the cross-attention's queries per head, scaled: (B, H, K, d)."""
@@ -201,8 +212,9 @@ class PARQLayer(nn.Module):
         self.register_buffer("mean_sizes", torch.tensor(mean_sizes, dtype=torch.float32),
                              persistent=False)
 
-    def attention_operands(self, memory: torch.Tensor, cached: bool, fused: bool = False):
-        return self.decoder.attention_operands(memory, cached, fused)
+    def attention_operands(self, memory: torch.Tensor, cached: bool, fused: bool = False,
+                           token_bias: bool = True):
+        return self.decoder.attention_operands(memory, cached, fused, token_bias)
 
     def forward(self, query_content, reference_points, operands=None, memory=None,
                 attend=None) -> dict:

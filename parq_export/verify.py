@@ -114,7 +114,8 @@ def check(model: PARQ, backbone_path, layer_path, seed: int = 0) -> dict:
                                        model.ray_encoder.mlp[2])
             expected = model.layer(content[None], torch.from_numpy(points)[None],
                                    memory=tokens)
-            ref_keys, ref_values, *_ = model.layer.attention_operands(tokens, cached=True)
+            ref_keys, ref_values, *_ = model.layer.attention_operands(tokens, cached=True,
+                                                                       token_bias=False)
         for cached_form in (True, False):
             outs = dict(zip([o.name for o in backbone.get_outputs()],
                             backbone.run(None, {**feeds, "key_value": np.array(cached_form)})))

@@ -216,3 +216,58 @@ def test_attention_form_is_the_one_with_fewer_multiply_adds():
     # the README's crossovers: 32 queries fold up to 11 iterations; 256 fold only for one
     assert [choose_form(3, (80, 60), C, H, 32, n) for n in (11, 12)] == ["folded", "cached"]
     assert [choose_form(3, (80, 60), C, H, 256, n) for n in (1, 2)] == ["folded", "cached"]
+
+
+def test_if_branch_writes_its_outputs_without_a_copy():
+    """conditional.add_if: an output made inside a branch is written under its outer name
+    even when the branch reads it again (an Identity there is a whole-tensor copy in
+    onnxruntime); an output passed through from outside still gets its Identity."""
+    from onnx import TensorProto, helper
+
+    from parq_export import conditional
+
+    def model(nodes, outputs):
+        return helper.make_model(helper.make_graph(
+            nodes, "branch", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2])],
+            [helper.make_tensor_value_info(n, TensorProto.FLOAT, [2]) for n in outputs]))
+
+    one = helper.make_tensor("one", TensorProto.FLOAT, [], [1.0])
+    made = model([helper.make_node("Constant", [], ["c"], value=one),
+                  helper.make_node("Add", ["x", "c"], ["y"]),
+                  helper.make_node("Mul", ["y", "y"], ["z"])], ["y", "z"])
+    passed = model([helper.make_node("Neg", ["x"], ["n"])], ["x", "n"])
+    outer = helper.make_model(helper.make_graph(
+        [], "outer", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2])], []),
+        opset_imports=[helper.make_opsetid("", 18)])
+    infos = [helper.make_tensor_value_info(n, TensorProto.FLOAT, [2]) for n in ("a", "b")]
+    joined = conditional.add_if(outer, "flag", made, passed, ["a", "b"], infos)
+    onnx.checker.check_model(joined)
+    branches = {a.name: a.g for a in joined.graph.node[-1].attribute}
+    assert [n.op_type for n in branches["then_branch"].node] == ["Constant", "Add", "Mul"]
+    assert [(n.op_type, list(n.input)) for n in branches["else_branch"].node] == [
+        ("Neg", ["x"]), ("Identity", ["x"])]
+    x = np.array([1.0, -2.0], np.float32)
+    for flag, want in ((True, [x + 1, (x + 1) ** 2]), (False, [x, -x])):
+        got = ReferenceEvaluator(joined).run(None, {"x": x, "flag": np.array(flag)})
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g, w)
+
+
+def test_cached_operands_without_token_biases_give_the_same_attention():
+    """The exported cached form leaves the key and value biases off the tokens (softmax
+    removes the one, the weights' sum of 1 carries the other): the attention agrees with the
+    biased operands the authors' arithmetic uses."""
+    torch.manual_seed(0)
+    from parq_export.model import PARQ
+
+    model = PARQ(tiny_config()).eval()
+    decoder = model.layer.decoder
+    with torch.no_grad():
+        decoder.multihead_attn.in_proj_bias.normal_(0, 1.0)
+        memory = torch.randn(1, 37, tiny_config().feature_dim)
+        x = torch.randn(1, 5, tiny_config().feature_dim)
+        biased = decoder.attention_operands(memory, cached=True)
+        bare = decoder.attention_operands(memory, cached=True, token_bias=False)
+        assert not torch.allclose(biased[0], bare[0])
+        torch.testing.assert_close(decoder.cross_attention(x, *bare),
+                                   decoder.cross_attention(x, *biased), atol=2e-5, rtol=1e-5)
