@@ -29,30 +29,54 @@ def official_checkpoint() -> pathlib.Path:
     return path
 
 
+EXPORTER_STAMP = ".exporter.sha256"
+
+
+def exporter_digest() -> str:
+    """sha256 of parq_export's source files: a cached export made by other code is stale even
+    when its graphs have the same inputs and outputs."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    for path in sorted((ROOT / "parq_export").glob("*.py")):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()
+
+
 def stale(folder: pathlib.Path, sha256: str | None = None) -> bool:
     """Whether a cached model folder must be exported again: missing, in another model format
-    than this package reads, naming other backbone outputs than the export writes now, or
-    (given ``sha256``) exported from another checkpoint."""
+    than this package reads, naming other backbone outputs than the export writes now, made by
+    other exporter code (:func:`exporter_digest`, stamped by :func:`export_cached`), or (given
+    ``sha256``) exported from another checkpoint."""
     import json
 
     from parq_export.graphs import BACKBONE_GRAPH_OUTPUTS
     from parq_runtime.model_card import CARD_VERSION
 
-    card = folder / "model.json"
-    if not card.exists():
+    card, stamp = folder / "model.json", folder / EXPORTER_STAMP
+    if not card.exists() or not stamp.exists():
         return True
     card = json.loads(card.read_text())
     return (card.get("format_version") != CARD_VERSION
             or card["graphs"]["backbone"]["outputs"] != list(BACKBONE_GRAPH_OUTPUTS)
+            or stamp.read_text().strip() != exporter_digest()
             or (sha256 is not None and card["checkpoint"]["sha256"] != sha256))
+
+
+def export_cached(checkpoint, out: pathlib.Path, **options) -> None:
+    """Export ``checkpoint`` into the cache folder ``out`` and stamp it with the exporter's
+    digest (see :func:`stale`)."""
+    from parq_export.export import export
+
+    export(checkpoint, out, overwrite=True, log=lambda *_: None, **options)
+    (out / EXPORTER_STAMP).write_text(exporter_digest() + "\n")
 
 
 def official_model() -> pathlib.Path:
     """The exported official checkpoint, exported again when :func:`stale`."""
     out = CACHE / "official_model"
     if stale(out):
-        from parq_export.export import export
-        export(official_checkpoint(), out, overwrite=True, log=lambda *_: None)
+        export_cached(official_checkpoint(), out)
     return out
 
 

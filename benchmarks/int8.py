@@ -27,16 +27,13 @@ import tradeoff
 
 
 def export_pair(checkpoint, name: str, calibration) -> tuple:
-    from parq_export.export import export
-
     digest = hashlib.sha256(pathlib.Path(checkpoint).read_bytes()).hexdigest()
     paths = []
     for quantize in (None, "int8"):
         out = common.CACHE / f"{name}_{quantize or 'fp32'}"
         # re-export also when the checkpoint changed (a re-tuned demo has new post-processing)
         if common.stale(out, digest):
-            export(checkpoint, out, overwrite=True, quantize=quantize, calibration=calibration,
-                   log=lambda *_: None)
+            common.export_cached(checkpoint, out, quantize=quantize, calibration=calibration)
         paths.append(out)
     return tuple(paths)
 
