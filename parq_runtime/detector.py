@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import collections
 import numbers
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -105,10 +107,17 @@ class Detector:
     default, and the backbone session never spins: a spinning pool keeps its cores busy for
     tens of milliseconds after its run returns, which slowed the first iteration after the
     backbone from 36 to 60 ms and whatever the caller does next (benchmarks/session_options.py).
+
+    The views of a snippet are resized in a pool of ``threads`` (default: one per core) Python
+    threads: Pillow releases the GIL while it resamples, so three 1296x968 frames take about
+    11.5 ms instead of 16.5 on 2 cores (median of 20; ``benchmarks/latency.py`` times it as
+    ``preprocess``).
     """
 
     def __init__(self, model_dir, providers=None, threads=None, spinning: bool = False):
         self.card = model_card.load(model_dir)
+        self._threads = int(threads) if threads is not None else (os.cpu_count() or 1)
+        self._pool = None
         self.backbone = sessions.create(self.card.graph_path("backbone"), threads, providers,
                                         spinning=False)
         self.layer = sessions.create(self.card.graph_path("layer"), threads, providers,
@@ -141,13 +150,24 @@ class Detector:
         except ParqError as e:
             raise ParqError(f"view {i}: {e}") from None
 
+    def _prepare_views(self, indices, images, K) -> dict:
+        """{i: preprocess.prepare(images[i], K[i])} for the listed views, resized in parallel
+        when there is more than one; the first failing view (in ``indices`` order) raises."""
+        if len(indices) < 2 or self._threads < 2:
+            return {i: self._prepare_view(i, images[i], K[i]) for i in indices}
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self._threads, thread_name_prefix="parq-prepare")
+        futures = [self._pool.submit(self._prepare_view, i, images[i], K[i]) for i in indices]
+        return {i: f.result() for i, f in zip(indices, futures)}
+
     def prepare(self, images, intrinsics, cam_to_world, up=geometry.UP_Z):
         """Resize frames and compute the snippet geometry: returns (images (N, h, w, 3) uint8,
         camera (N, 4) at feature resolution, T_world_local, T_local_camera (N, 4, 4))."""
         images = list(images)
         T_world_camera, K = self._check_snippet(images, intrinsics, cam_to_world)
-        views = [self._prepare_view(i, image, K_i) for i, (image, K_i) in enumerate(zip(images, K))]
-        return snippet_inputs(views, T_world_camera, self.card.feature_stride, up)
+        prepared = self._prepare_views(range(len(images)), images, K)
+        return snippet_inputs([prepared[i] for i in range(len(images))], T_world_camera,
+                              self.card.feature_stride, up)
 
     def encode(self, images, camera, T_local_camera, cached: bool, cached_levels=None):
         """Run backbone.onnx on new frames (Nn, h, w, 3) after frames encoded before, whose
@@ -207,7 +227,7 @@ class Detector:
         old = [i for i in range(len(images)) if hit[i]]
         new = [i for i in range(len(images)) if not hit[i]]
         order = old + new
-        prepared = {i: self._prepare_view(i, images[i], K[i]) for i in new}
+        prepared = self._prepare_views(new, images, K)
         K_net = np.stack([cache.get(keys[i])[1] if hit[i] else prepared[i][1] for i in order])
         camera = geometry.scale_camera(geometry.pinhole(K_net), 1.0 / self.card.feature_stride)
         T_world_local = geometry.snippet_frame(T_world_camera, up)

@@ -45,6 +45,27 @@ def test_graphs_name_every_input_and_output_and_carry_the_card(tiny_model):
                                         for v in card["verification"].values())
 
 
+
+def test_views_resized_in_parallel_equal_one_at_a_time(tiny_model):
+    """The thread pool that resizes a snippet's views changes nothing: the same images and
+    cameras as one view at a time, and a bad view is still named (the first in view order)."""
+    rng = np.random.default_rng(7)
+    sizes = [(96, 128), (240, 320), (120, 160), (200, 260)]
+    images = [rng.integers(0, 256, (h, w, 3), dtype=np.uint8) for h, w in sizes]
+    K = np.stack([[[0.9 * w, 0, w / 2], [0, 0.9 * w, h / 2], [0, 0, 1]] for h, w in sizes])
+    T_world_camera = np.repeat(np.eye(4)[None], len(sizes), 0)
+    T_world_camera[:, :3, :3] = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]  # looking along world y
+    T_world_camera[:, 0, 3] = np.arange(len(sizes)) * 0.1
+    serial = Detector(tiny_model, threads=1).prepare(images, K, T_world_camera)
+    parallel = Detector(tiny_model, threads=3)
+    for got, expected in zip(parallel.prepare(images, K, T_world_camera), serial):
+        np.testing.assert_array_equal(got, expected)
+    bad = list(images)
+    bad[1] = bad[1].astype(np.float32)
+    bad[3] = bad[3][..., :2]
+    with pytest.raises(ParqError, match="^view 1: expected an RGB uint8 image"):
+        parallel.prepare(bad, K, T_world_camera)
+
 @pytest.mark.parametrize("views,queries,iters", [(1, 5, 1), (2, 20, 3), (4, 45, 2),
                                                  (3, 7, 9)])
 @pytest.mark.parametrize("form", ["cached", "folded"])
