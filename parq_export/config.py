@@ -67,6 +67,9 @@ class PARQConfig:
     eval_region: tuple = (-1.5, 1.5, 0.0, 2.0)  # kept centers: local x in (a, b), z in (c, d)
     fusion: str = scene_fusion.AUTHORS_MODE     # scene fusion (parq_runtime.fusion)
     min_support: int = scene_fusion.AUTHORS_MIN_SUPPORT  # snippets that must see a box
+    # learned queries, most useful first (parq_train.tune): a run with fewer queries starts
+    # from the first ones; () = farthest-point sampling (parq_runtime.queries)
+    query_order: tuple = ()
     extra: dict = field(default_factory=dict, compare=False)  # free-form provenance
 
     feature_stride = 4  # FPN level P2; every level is resized to it
@@ -90,6 +93,9 @@ class PARQConfig:
             problems.append(f"image_size {self.image_size}: width and height must be "
                             "multiples of 4, at least 32")
         problems += scene_fusion.problems(self.fusion, self.min_support)
+        if self.query_order and sorted(self.query_order) != list(range(self.num_queries)):
+            problems.append(f"query_order must be a permutation of the {self.num_queries} "
+                            "learned queries")
         if not 0 < self.ray_depth[0] < self.ray_depth[1]:
             problems.append(f"ray_depth {self.ray_depth} must be 0 < near < far")
         if problems:

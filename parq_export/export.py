@@ -163,6 +163,7 @@ def build_card(model: PARQ, checkpoint: ckpt.Checkpoint, source: pathlib.Path,
                                 "views, divided by the number of views where the point is "
                                 "valid (z > 1e-3 and inside [0, w-1] x [0, h-1])"},
         "reference_points": model.initial_reference_points().detach().double().tolist(),
+        "query_order": [int(i) for i in c.query_order],
         "postprocess": {"score_threshold": c.score_threshold, "nms_iou": c.nms_iou,
                         "eval_region": list(c.eval_region), "fusion": c.fusion,
                         "min_support": c.min_support},

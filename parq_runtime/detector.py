@@ -126,7 +126,8 @@ class Detector:
 
     def reference_points(self, queries: int) -> np.ndarray:
         queries = _check_count(queries, "queries", 1, self.card.max_queries)
-        return query_points.reference_points(self.card.reference_points, queries)
+        return query_points.reference_points(self.card.reference_points, queries,
+                                             self.card.query_order)
 
     def _check_snippet(self, images, intrinsics, cam_to_world) -> tuple:
         N = len(images)

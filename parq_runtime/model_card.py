@@ -71,6 +71,14 @@ class ModelCard:
         return np.asarray(self.raw["reference_points"], dtype=np.float64)
 
     @property
+    def query_order(self) -> np.ndarray | None:
+        """The learned queries' indices, most useful first (chosen on validation data by
+        ``parq_train.tune``), or None: runs with fewer queries then use farthest-point sampling.
+        Cards written before it was recorded have none."""
+        order = self.raw.get("query_order") or None
+        return None if order is None else np.asarray(order, dtype=np.int64)
+
+    @property
     def score_threshold(self) -> float:
         return float(self.raw["postprocess"]["score_threshold"])
 
@@ -155,6 +163,11 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
         if check_hashes and entry.get("sha256") and _sha256(graph) != entry["sha256"]:
             raise ParqError(f"{graph}: does not match the model card (sha256 differs; the file "
                             "was changed or comes from another export)")
+    order = raw.get("query_order") or []
+    if not (isinstance(order, list) and all(isinstance(i, int) for i in order)
+            and (not order or sorted(order) == list(range(len(raw["reference_points"]))))):
+        raise ParqError(f"{path}: query_order must list each of the "
+                        f"{len(raw['reference_points'])} learned queries once")
     if len(card.mean_sizes) != len(card.classes) + 1:
         raise ParqError(f"{path}: {len(card.mean_sizes)} mean sizes for {len(card.classes)} "
                         "classes")

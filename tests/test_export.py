@@ -46,6 +46,38 @@ def test_graphs_name_every_input_and_output_and_carry_the_card(tiny_model):
 
 
 
+
+def test_fewer_queries_start_from_the_cards_ranking_or_farthest_points(tiny_model, tmp_path):
+    """With a query_order in the card, K queries are its first K (in stored order); without
+    one, farthest-point sampling; the learned count is always every learned point; an order
+    that is not a permutation of the learned queries is refused when the folder is opened."""
+    from parq_runtime.queries import farthest_point_sampling
+
+    card = json.loads((tiny_model / "model.json").read_text())
+    learned = np.asarray(card["reference_points"])
+    K = len(learned)
+    assert card["query_order"] == []
+    plain = Detector(tiny_model)
+    np.testing.assert_array_equal(plain.reference_points(5),
+                                  learned[farthest_point_sampling(learned, 5)])
+    ranked = tmp_path / "ranked"
+    ranked.mkdir()
+    for f in ("backbone.onnx", "layer.onnx"):
+        (ranked / f).write_bytes((tiny_model / f).read_bytes())
+    order = list(range(K))[::-1]
+    (ranked / "model.json").write_text(json.dumps(dict(card, query_order=order)))
+    det = Detector(ranked)
+    np.testing.assert_array_equal(det.reference_points(5), learned[K - 5:])
+    np.testing.assert_array_equal(det.reference_points(K), learned)
+    for bad in ([0] * K, order[:-1], [str(i) for i in order]):
+        (ranked / "model.json").write_text(json.dumps(dict(card, query_order=bad)))
+        with pytest.raises(ParqError, match="query_order must list each of the"):
+            Detector(ranked)
+    config = tiny_config()
+    assert config.replace(query_order=tuple(order)).query_order == tuple(order)
+    with pytest.raises(ValueError, match="query_order must be a permutation"):
+        config.replace(query_order=(0,) * K)
+
 def test_views_resized_in_parallel_equal_one_at_a_time(tiny_model):
     """The thread pool that resizes a snippet's views changes nothing: the same images and
     cameras as one view at a time, and a bad view is still named (the first in view order)."""
