@@ -12,6 +12,12 @@ Each validation snippet is run once with no threshold and no region; every candi
 then applied to those detections exactly as the runtime applies it (after NMS), and the scene
 is fused and scored.  So the grid costs one detector pass, not one per candidate.
 
+Before that, when the run settings use fewer queries than the model learned, it ranks the
+learned queries (``query_order``, see parq_runtime.queries): one pass with all of them, each
+query scored by the snippet detections it makes above score 0.7, +1 for each that overlaps a
+ground-truth box of its class at IoU 0.25 and -0.5 for each that does not.  Runs with fewer
+queries start from the best ones, and the post-processing is chosen for that subset.
+
     python -m parq_train.tune work/demo.pt --data data/val -o work/demo-tuned.pt
 """
 from __future__ import annotations
@@ -27,6 +33,7 @@ from parq_runtime import evaluation, geometry, readers, scene
 from parq_runtime.arguments import OneLineParser, positive_int
 from parq_runtime.errors import ParqError
 from parq_runtime.fusion import AUTHORS_MIN_SUPPORT, AUTHORS_MODE, SceneFusion
+from parq_runtime.iou import iou_matrix
 
 THRESHOLDS = tuple(np.round(np.arange(0.3, 0.951, 0.05), 2))
 # (xmin, xmax, zmin, zmax) in the snippet frame; the first is the authors'.
@@ -35,6 +42,7 @@ REGIONS = ((-1.5, 1.5, 0.0, 2.0), (-2.0, 2.0, 0.0, 3.0), (-2.5, 2.5, 0.0, 3.5),
 # (mode, min_support); the first is the authors'.  No support above 2: it would hide every
 # object that a short capture shows in fewer snippets (3 snippets are 9 keyframes).
 FUSIONS = ((AUTHORS_MODE, AUTHORS_MIN_SUPPORT), ("best", 2), ("mean", 1), ("mean", 2))
+RANKING_SCORE, RANKING_IOU, FALSE_WEIGHT = 0.7, 0.25, 0.5  # how query_utility counts
 AUTHORS = {"score_threshold": 0.8, "eval_region": list(REGIONS[0]), "fusion": FUSIONS[0][0],
            "min_support": FUSIONS[0][1]}
 
@@ -55,6 +63,27 @@ def run_once(detector, folders, iters: int, queries: int) -> list:
         truth, up = evaluation.load_ground_truth(folder / "boxes.json")
         out.append((snippets, truth, up))
     return out
+
+
+def query_utility(records: list, num_queries: int) -> np.ndarray:
+    """(num_queries,) true minus FALSE_WEIGHT x false snippet detections of each query over
+    ``records`` (run_once with every learned query): a detection scoring above RANKING_SCORE
+    is true when it overlaps a ground-truth box of its class at IoU >= RANKING_IOU."""
+    utility = np.zeros(num_queries)
+    for snippets, truth, up in records:
+        for boxes in snippets:
+            for box, _ in boxes:
+                if box.score <= RANKING_SCORE:
+                    continue
+                same = [t for t in truth if t.class_name == box.class_name]
+                hit = bool(same) and iou_matrix([box], same, up).max() >= RANKING_IOU
+                utility[box.query] += 1.0 if hit else -FALSE_WEIGHT
+    return utility
+
+
+def rank_queries(utility: np.ndarray) -> list:
+    """Query indices by decreasing utility; equal ones keep their stored order."""
+    return [int(i) for i in np.argsort(-utility, kind="stable")]
 
 
 def score(records: list, threshold: float, region, classes, fusion: str = AUTHORS_MODE,
@@ -119,9 +148,24 @@ def run(args) -> int:
     if not folders:
         raise ParqError(f"{args.data}: no generated scenes (parq-synth)")
     loaded = checkpoint.load(args.checkpoint)
+    learned = loaded.config.num_queries
+    ranking = None
     with tempfile.TemporaryDirectory() as tmp:
-        export(args.checkpoint, pathlib.Path(tmp) / "model", log=lambda *_: None)
-        detector = Detector(pathlib.Path(tmp) / "model")
+        tmp = pathlib.Path(tmp)
+        export(args.checkpoint, tmp / "model", log=lambda *_: None)
+        detector = Detector(tmp / "model")
+        if args.queries < learned:
+            utility = query_utility(run_once(detector, folders, args.iters, learned), learned)
+            order = rank_queries(utility)
+            ranking = {"utility": [float(u) for u in utility], "order": order,
+                       "criterion": f"snippet detections above {RANKING_SCORE}: +1 if IoU >= "
+                                    f"{RANKING_IOU} with a box of its class, else "
+                                    f"-{FALSE_WEIGHT}", "iters": args.iters}
+            ranked = loaded.model()
+            ranked.config = loaded.config.replace(query_order=tuple(order))
+            checkpoint.save(tmp / "ranked.pt", ranked, {})
+            export(tmp / "ranked.pt", tmp / "ranked", log=lambda *_: None)
+            detector = Detector(tmp / "ranked")
         records = run_once(detector, folders, args.iters, args.queries)
         classes = detector.classes
     best, table = select(records, classes)
@@ -131,12 +175,13 @@ def run(args) -> int:
     record = {"data": str(args.data), "seeds": seeds, "scenes": len(folders),
               "iters": args.iters,
               "queries": args.queries, "criterion": "max F1@0.25 + F1@0.5",
-              "chosen": best, "authors_settings": authors}
+              "chosen": best, "authors_settings": authors, "query_ranking": ranking}
     model = loaded.model()
     extra = dict(loaded.config.extra, postprocess_tuning=record)
     model.config = loaded.config.replace(
         score_threshold=best["score_threshold"], eval_region=tuple(best["eval_region"]),
-        fusion=best["fusion"], min_support=best["min_support"], extra=extra)
+        fusion=best["fusion"], min_support=best["min_support"], extra=extra,
+        query_order=tuple(ranking["order"]) if ranking else loaded.config.query_order)
     metadata = {"tuning_table": table}
     checkpoint.save(args.output, model, metadata)
     print(json.dumps(record, indent=1))

@@ -104,6 +104,28 @@ def test_tune_picks_the_threshold_and_region_that_separate_true_from_false_boxes
     assert everything["f1@0.25"] == 0.5     # 1 of 3 predictions right, the one box found
 
 
+
+def test_tune_ranks_queries_by_their_true_and_false_detections():
+    """Query 2 finds the chair twice; query 0 once and misfires twice; query 1 only
+    misfires (a table box on the chair, and a chair far away); query 3 finds it once but
+    below the ranking score, which does not count; query 4 never fires."""
+    from parq_runtime.boxes import Box
+    from parq_runtime.geometry import box_corners
+    from parq_train import tune
+
+    def box(center, score, query, name="chair"):
+        c, s, R = np.asarray(center, float), np.array([0.5, 0.8, 0.5]), np.eye(3)
+        return (Box(c, s, R, 0.0, 0, name, score, box_corners(c, s, R), query), c)
+
+    truth = [box([0.0, 0.0, 1.0], 1.0, -1)[0]]
+    snippets = [[box([0.0, 0.0, 1.0], 0.9, 2), box([0.05, 0.0, 1.0], 0.8, 0),
+                 box([0.0, 0.0, 1.0], 0.95, 1, "table"), box([0.0, 0.0, 1.0], 0.6, 3)],
+                [box([0.02, 0.0, 1.0], 0.99, 2), box([3.0, 0.0, 1.0], 0.9, 1),
+                 box([0.0, 0.0, 4.0], 0.8, 0), box([0.0, 0.0, 5.0], 0.75, 0)]]
+    utility = tune.query_utility([(snippets, truth, (0.0, 0.0, 1.0))], 5)
+    np.testing.assert_array_equal(utility, [0.0, -1.0, 2.0, 0.0, 0.0])
+    assert tune.rank_queries(utility) == [2, 0, 3, 4, 1]
+
 def test_training_is_deterministic_for_a_seed():
     """The same seed gives the same weights bit for bit (what makes rebuild.sh reproduce the
     demo); another seed does not."""
