@@ -45,8 +45,6 @@ def test_graphs_name_every_input_and_output_and_carry_the_card(tiny_model):
                                         for v in card["verification"].values())
 
 
-
-
 def test_fewer_queries_start_from_the_cards_ranking_or_farthest_points(tiny_model, tmp_path):
     """With a query_order in the card, K queries are its first K (in stored order); without
     one, farthest-point sampling; the learned count is always every learned point; an order
@@ -77,6 +75,7 @@ def test_fewer_queries_start_from_the_cards_ranking_or_farthest_points(tiny_mode
     assert config.replace(query_order=tuple(order)).query_order == tuple(order)
     with pytest.raises(ValueError, match="query_order must be a permutation"):
         config.replace(query_order=(0,) * K)
+
 
 def test_views_resized_in_parallel_equal_one_at_a_time(tiny_model):
     """The thread pool that resizes a snippet's views changes nothing: the same images and

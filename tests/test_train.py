@@ -104,7 +104,6 @@ def test_tune_picks_the_threshold_and_region_that_separate_true_from_false_boxes
     assert everything["f1@0.25"] == 0.5     # 1 of 3 predictions right, the one box found
 
 
-
 def test_tune_ranks_queries_by_their_true_and_false_detections():
     """Query 2 finds the chair twice; query 0 once and misfires twice; query 1 only
     misfires (a table box on the chair, and a chair far away); query 3 finds it once but
@@ -125,6 +124,7 @@ def test_tune_ranks_queries_by_their_true_and_false_detections():
     utility = tune.query_utility([(snippets, truth, (0.0, 0.0, 1.0))], 5)
     np.testing.assert_array_equal(utility, [0.0, -1.0, 2.0, 0.0, 0.0])
     assert tune.rank_queries(utility) == [2, 0, 3, 4, 1]
+
 
 def test_training_is_deterministic_for_a_seed():
     """The same seed gives the same weights bit for bit (what makes rebuild.sh reproduce the
