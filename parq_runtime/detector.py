@@ -112,9 +112,15 @@ class Detector:
     threads: Pillow releases the GIL while it resamples, so three 1296x968 frames take about
     11.5 ms instead of 16.5 on 2 cores (median of 20; ``benchmarks/latency.py`` times it as
     ``preprocess``).
+
+    device_binding: on an accelerator (None: whenever the sessions run on one; True forces it,
+    also on the CPU) the backbone leaves the attention keys and values on the device and the
+    loop binds them there (``loop.LayerRunner``): 2 x 59 MB that would otherwise cross to the
+    host and back for every snippet in the authors' configuration.
     """
 
-    def __init__(self, model_dir, providers=None, threads=None, spinning: bool = False):
+    def __init__(self, model_dir, providers=None, threads=None, spinning: bool = False,
+                 device_binding: bool | None = None):
         self.card = model_card.load(model_dir)
         self._threads = int(threads) if threads is not None else (os.cpu_count() or 1)
         self._pool = None
@@ -123,6 +129,9 @@ class Detector:
         self.layer = sessions.create(self.card.graph_path("layer"), threads, providers,
                                      spinning)
         self.classes = self.card.classes
+        self.device = sessions.device(self.backbone)
+        self.device_binding = (self.device != "cpu") if device_binding is None \
+            else bool(device_binding)
 
     def reference_points(self, queries: int) -> np.ndarray:
         queries = _check_count(queries, "queries", 1, self.card.max_queries)
@@ -175,7 +184,9 @@ class Detector:
         levels P2..P5 are ``cached_levels`` (a list of four (Nc, h_l, w_l, F) arrays, or
         None); camera and T_local_camera list the Nc + Nn views in that order.  Returns
         (factors: level_0..3 (N, h_l, w_l, F) and ray_hidden (N, h', w', C), operands: the
-        memory (N, h', w', C) and the attention keys and values, empty unless ``cached``)."""
+        memory (N, h', w', C) and the attention keys and values (H, S, d), empty unless
+        ``cached``).  All numpy arrays, except with ``device_binding`` in the cached form: the
+        keys and values are then ``onnxruntime.OrtValue`` on the sessions' device."""
         feeds = empty_cache(self.card.feature_size, self.card.feature_dim)
         if cached_levels is not None:
             feeds = {name: np.ascontiguousarray(levels, dtype=np.float32)
@@ -184,11 +195,22 @@ class Detector:
             w, h = self.card.image_size
             images = np.zeros((0, h, w, 3), np.uint8)
         outputs = [o.name for o in self.backbone.get_outputs()]
-        result = dict(zip(outputs, self.backbone.run(None, {
-            **feeds, "images": np.ascontiguousarray(images),
-            "camera": camera.astype(np.float32),
-            "T_local_camera": T_local_camera.astype(np.float32),
-            "key_value": np.array(cached)})))
+        feeds.update({"images": np.ascontiguousarray(images),
+                      "camera": np.ascontiguousarray(camera, dtype=np.float32),
+                      "T_local_camera": np.ascontiguousarray(T_local_camera, dtype=np.float32),
+                      "key_value": np.array(cached)})
+        if self.device_binding:   # keys and values stay where the layer will read them
+            binding = self.backbone.io_binding()
+            for name, value in feeds.items():
+                binding.bind_cpu_input(name, np.ascontiguousarray(value))
+            for name in outputs:
+                binding.bind_output(name, self.device if cached and name in loop.OPERAND_NAMES
+                                    else "cpu")
+            self.backbone.run_with_iobinding(binding)
+            result = {name: value if cached and name in loop.OPERAND_NAMES else value.numpy()
+                      for name, value in zip(outputs, binding.get_outputs())}
+        else:
+            result = dict(zip(outputs, self.backbone.run(None, feeds)))
         return ({k: result[k] for k in loop.FACTOR_NAMES},
                 {k: result[k] for k in (loop.MEMORY_NAME,) + loop.OPERAND_NAMES})
 
@@ -256,7 +278,7 @@ class Detector:
         timings["iterations"] = []
         iterations = loop.run(self.layer, factors, operands, camera, T_camera_local, reference,
                               iters, self.card.decoder_scale, form == "cached",
-                              timings["iterations"])
+                              timings["iterations"], bind=self.device_binding)
         start = time.perf_counter()
         found = box_decoding.detections(
             iterations[-1], T_world_local, self.classes, float(threshold), self.card.nms_iou,

@@ -19,8 +19,9 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import onnxruntime as ort
 
-from . import geometry
+from . import geometry, sessions
 
 OPERAND_NAMES = ("attention_keys", "attention_values")
 MEMORY_NAME = "memory"
@@ -154,31 +155,88 @@ def sample_factors(factors: dict, points_local: np.ndarray, camera: np.ndarray,
             "query_weight": (weights.sum(0)[:, None] / count).astype(np.float32)}
 
 
+# Inputs of at least this many elements stay on the accelerator for the whole snippet.
+DEVICE_RESIDENT_ELEMENTS = 1 << 16
+
+
+class LayerRunner:
+    """layer.onnx over one snippet's iterations.  ``constant``: the inputs that do not change
+    between iterations (the factors, the attention keys and values: up to 2 x 59 MB each in
+    the authors' configuration).
+
+    On the CPU a plain ``session.run``.  On an accelerator (a session whose first provider is
+    not the CPU's), or with ``bind=True``, an onnxruntime IOBinding: the large constant inputs
+    are copied to the device once per snippet, not at every iteration (inputs given as
+    ``OrtValue`` are on it already: the backbone's keys and values, see Detector.encode), and
+    only the queries' inputs (K x C) and outputs cross to and from the host."""
+
+    def __init__(self, session, constant: dict, bind: bool | None = None):
+        self.session = session
+        device = sessions.device(session)
+        self.binding = None
+        if bind is None:
+            bind = device != "cpu"
+        if not bind:
+            self.constant = constant
+            return
+        self.binding = session.io_binding()
+        self.resident = []      # keeps the device copies alive as long as the binding
+        for name, value in constant.items():
+            if isinstance(value, ort.OrtValue):     # already where the session runs
+                self.resident.append(value)
+                self.binding.bind_ortvalue_input(name, value)
+                continue
+            value = np.ascontiguousarray(value)
+            if value.size >= DEVICE_RESIDENT_ELEMENTS:
+                resident = ort.OrtValue.ortvalue_from_numpy(value, device, 0)
+                self.resident.append(resident)
+                self.binding.bind_ortvalue_input(name, resident)
+            else:
+                self.binding.bind_cpu_input(name, value)
+        for name in LAYER_OUTPUTS:
+            self.binding.bind_output(name, "cpu")
+
+    def __call__(self, varying: dict) -> dict:
+        if self.binding is None:
+            return dict(zip(LAYER_OUTPUTS, self.session.run(LAYER_OUTPUTS,
+                                                            {**self.constant, **varying})))
+        for name, value in varying.items():
+            self.binding.bind_cpu_input(name, np.ascontiguousarray(value))
+        self.session.run_with_iobinding(self.binding)
+        return dict(zip(LAYER_OUTPUTS, self.binding.copy_outputs_to_cpu()))
+
+
 def run(layer_session, factors: dict, operands: dict, camera: np.ndarray,
         T_camera_local: np.ndarray, reference_points: np.ndarray, iterations: int,
-        decoder_scale, cached: bool, timings: list | None = None) -> list:
+        decoder_scale, cached: bool, timings: list | None = None,
+        bind: bool | None = None) -> list:
     """Run ``iterations`` PARQ iterations; returns a list of :class:`Iteration`.
 
     factors, operands: backbone.onnx's outputs (``FACTOR_NAMES``; ``OPERAND_NAMES`` and
     ``MEMORY_NAME``); cached: the form they were computed for (the keys, values and memory are
-    empty in the folded form)."""
-    memory = operands[MEMORY_NAME]
-    feeds = {**factors, **{n: operands[n] for n in OPERAND_NAMES},
-             "key_value": np.array(cached)}
+    empty in the folded form); bind: see :class:`LayerRunner` (None: on accelerators only)."""
+    memory = operands[MEMORY_NAME]                   # numpy: the loop samples it
+    constant = {**factors, **{n: operands[n] for n in OPERAND_NAMES},
+                "key_value": np.array(cached)}
     ref = np.ascontiguousarray(reference_points, dtype=np.float32)
-    if cached:   # inputs the cached form ignores, set once
-        feeds["query_ray_hidden"] = np.zeros((len(ref), memory.shape[-1]), np.float32)
-        feeds["query_weight"] = np.zeros((len(ref), 1), np.float32)
+    if cached:   # inputs the cached form ignores: set once, and no views of the factors
+        constant["query_ray_hidden"] = np.zeros((len(ref), memory.shape[-1]), np.float32)
+        constant["query_weight"] = np.zeros((len(ref), 1), np.float32)
+        constant.update({n: np.zeros((0,) + factors[n].shape[1:], np.float32)
+                         for n in FACTOR_NAMES})
+    start = time.perf_counter()     # the first iteration's time includes the uploads
+    layer = LayerRunner(layer_session, constant, bind)
     out = []
-    for _ in range(iterations):
-        start = time.perf_counter()
+    for i in range(iterations):
+        if i > 0:
+            start = time.perf_counter()
         points_local = denormalize(ref, decoder_scale)
         if cached:
-            feeds.update(sample_memory(memory, points_local, camera, T_camera_local))
+            feeds = sample_memory(memory, points_local, camera, T_camera_local)
         else:
-            feeds.update(sample_factors(factors, points_local, camera, T_camera_local))
+            feeds = sample_factors(factors, points_local, camera, T_camera_local)
         feeds["reference_points"] = ref
-        result = dict(zip(LAYER_OUTPUTS, layer_session.run(LAYER_OUTPUTS, feeds)))
+        result = layer(feeds)
         out.append(Iteration(reference=points_local, center=result["center"],
                              size=result["size"], ortho6d=result["ortho6d"],
                              rotation=result["rotation"], logits=result["logits"]))

@@ -31,8 +31,16 @@ def session_options(threads: int | None = None, spinning: bool = False) -> ort.S
     return options
 
 
+# onnxruntime's CUDA provider multiplies fp32 in TF32 unless told otherwise; on an H200 that
+# moved the authors' configuration's box centres by up to 6e-3 m and sizes by 5e-2 against the
+# torch model (1e-4 and 1e-3 with TF32 off; benchmarks/results/latency-gpu.md).  A provider
+# named without options gets these, so that every provider is exact; pass options to choose.
+EXACT_PROVIDER_OPTIONS = {"CUDAExecutionProvider": {"use_tf32": "0"}}
+
+
 def resolve_providers(providers) -> list:
-    """None -> CPU; names are checked against what this onnxruntime build offers."""
+    """None -> CPU; names are checked against what this onnxruntime build offers; a provider
+    named without options gets EXACT_PROVIDER_OPTIONS."""
     if providers is None:
         return ["CPUExecutionProvider"]
     if isinstance(providers, str):
@@ -43,17 +51,39 @@ def resolve_providers(providers) -> list:
     if unknown:
         raise ParqError(f"execution provider {', '.join(unknown)} is not available in this "
                         f"onnxruntime build (available: {', '.join(available)})")
+    providers = [(p, dict(EXACT_PROVIDER_OPTIONS[p])) if isinstance(p, str)
+                 and p in EXACT_PROVIDER_OPTIONS else p for p in providers]
     if "CPUExecutionProvider" not in names:
         providers = list(providers) + ["CPUExecutionProvider"]
     return list(providers)
 
 
+def device(session) -> str:
+    """Where a session's graph runs: ``cuda`` when its first provider is onnxruntime's CUDA
+    provider, else ``cpu`` (the names ``OrtValue.ortvalue_from_numpy`` takes)."""
+    return "cuda" if session.get_providers()[0] == "CUDAExecutionProvider" else "cpu"
+
+
+def _preload_cuda() -> None:
+    """onnxruntime-gpu finds CUDA and cuDNN in the nvidia-* wheels only after
+    ``preload_dlls`` (onnxruntime >= 1.21); a system-wide CUDA needs nothing."""
+    preload = getattr(ort, "preload_dlls", None)
+    if preload is not None:
+        try:
+            preload()
+        except Exception:  # noqa: BLE001 - best effort: the session reports what is missing
+            pass
+
+
 def create(path, threads=None, providers=None, spinning=False) -> ort.InferenceSession:
     if threads is not None and (int(threads) < 1 or int(threads) > 4 * (os.cpu_count() or 1)):
         raise ParqError(f"--threads {threads}: use 1 to {4 * (os.cpu_count() or 1)}")
+    providers = resolve_providers(providers)
+    if any((p if isinstance(p, str) else p[0]) == "CUDAExecutionProvider" for p in providers):
+        _preload_cuda()
     try:
         return ort.InferenceSession(str(path), session_options(threads, spinning),
-                                    providers=resolve_providers(providers))
+                                    providers=providers)
     except ParqError:
         raise
     except Exception as e:  # onnxruntime raises its own Fail/InvalidGraph/... types

@@ -131,6 +131,64 @@ def test_runtime_matches_torch(tiny_checkpoint, tiny_model, views, queries, iter
         np.testing.assert_allclose(got.size, ref["size"][0], rtol=1e-3)
 
 
+@pytest.mark.parametrize("form", ["cached", "folded"])
+def test_device_bound_layer_gives_the_plain_runs_outputs(tiny_model, form, monkeypatch):
+    """The IOBinding path that keeps a snippet's large constant inputs on an accelerator,
+    run here with the CPU as its device: the same outputs, to the bit, as session.run, with
+    large inputs bound as device values and small ones as host arrays."""
+    import onnxruntime as ort
+
+    from parq_runtime import loop, sessions
+
+    det = Detector(tiny_model)
+    assert sessions.device(det.layer) == "cpu"
+    assert loop.LayerRunner(det.layer, {}).binding is None    # CPU sessions run plainly
+    rng = np.random.default_rng(3)
+    camera, T_local_camera = verify.random_snippet(rng, 3, det.card)
+    w, h = det.card.image_size
+    images = rng.integers(0, 256, (3, h, w, 3), dtype=np.uint8)
+    factors, operands = det.encode(images, camera, T_local_camera, cached=form == "cached")
+    # level_0 and larger inputs bound as device values, the coarser levels as host arrays
+    monkeypatch.setattr(loop, "DEVICE_RESIDENT_ELEMENTS", factors["level_0"].size)
+    runs = [loop.run(det.layer, factors, operands, camera, np.linalg.inv(T_local_camera),
+                     det.reference_points(11), 3, det.card.decoder_scale, form == "cached",
+                     bind=bind) for bind in (False, True)]
+    for plain, bound in zip(*runs):
+        for name in ("center", "size", "rotation", "logits"):
+            np.testing.assert_array_equal(getattr(bound, name), getattr(plain, name))
+    runner = loop.LayerRunner(det.layer, {n: factors[n] for n in ("level_0", "level_3")},
+                              bind=True)
+    assert len(runner.resident) == 1 and runner.resident[0].device_name() == "cpu"
+    # the whole detector with the backbone's keys and values left as device values
+    bound = Detector(tiny_model, device_binding=True)
+    images = list(images)
+    K = np.array([[0.9 * w, 0, w / 2], [0, 0.9 * w, h / 2], [0, 0, 1]])
+    T_world_camera = np.linalg.inv(np.asarray(T_local_camera, np.float64))
+    plain = det.detect(images, K, T_world_camera, iters=2, queries=9, form=form)
+    on_device = bound.detect(images, K, T_world_camera, iters=2, queries=9, form=form)
+    for a, b in zip(plain.iterations, on_device.iterations):
+        np.testing.assert_array_equal(a.center, b.center)
+        np.testing.assert_array_equal(a.logits, b.logits)
+    _, operands = bound.encode(images, camera, T_local_camera, cached=form == "cached")
+    assert isinstance(operands["attention_keys"], ort.OrtValue) == (form == "cached")
+
+
+def test_cuda_provider_named_alone_runs_in_exact_fp32(monkeypatch):
+    """--providers CUDAExecutionProvider turns TF32 off (it moved box centres by 6e-3 m on an
+    H200); options given by the caller are kept; unknown providers are refused in one line."""
+    from parq_runtime import sessions
+
+    monkeypatch.setattr(sessions.ort, "get_available_providers",
+                        lambda: ["CUDAExecutionProvider", "CPUExecutionProvider"])
+    assert sessions.resolve_providers("CUDAExecutionProvider") == [
+        ("CUDAExecutionProvider", {"use_tf32": "0"}), "CPUExecutionProvider"]
+    chosen = ("CUDAExecutionProvider", {"use_tf32": "1"})
+    assert sessions.resolve_providers([chosen]) == [chosen, "CPUExecutionProvider"]
+    assert sessions.resolve_providers(None) == ["CPUExecutionProvider"]
+    with pytest.raises(ParqError, match="^execution provider TensorrtExecutionProvider is not"):
+        sessions.resolve_providers("TensorrtExecutionProvider")
+
+
 def test_graphs_agree_with_onnx_reference_evaluator(tiny_model):
     """Both graphs, both forms, one frame cached and one new, against onnx's reference
     evaluator (an independent implementation of every operator, the If included)."""
