@@ -36,9 +36,14 @@ GRID = ([(256, i) for i in (1, 2, 4, 6, 8)] + [(q, 8) for q in (16, 32, 64, 128)
         + [(32, 2)])
 
 
-def reference_run(model, images, K, T_world_camera, iters, reference_points):
-    """The authors' pipeline with this package's torch model; returns stage timings."""
+def reference_run(model, images, K, T_world_camera, iters, reference_points, device="cpu"):
+    """The authors' pipeline with this package's torch model (on ``device``, where ``model``
+    is); returns stage timings, each taken after the device has finished its work."""
     import torch
+
+    def sync():
+        if device != "cpu":
+            torch.cuda.synchronize()
 
     from parq_export.model import pixel_aligned_features
     from parq_export.ray_encoding import denormalize_points
@@ -49,21 +54,23 @@ def reference_run(model, images, K, T_world_camera, iters, reference_points):
     t = time.perf_counter()
     prepared = [preprocess.prepare(im, K, config.image_size) for im in images]
     x = torch.from_numpy(np.stack([p[0] for p in prepared])).permute(0, 3, 1, 2)[None]
-    x = x.float() / 255.0
+    x = x.float().to(device) / 255.0
     camera = geometry.scale_camera(geometry.pinhole(np.stack([p[1] for p in prepared])),
                                    1.0 / config.feature_stride)
     T_world_local = geometry.snippet_frame(T_world_camera)
     T_local_camera = geometry.invert(T_world_local) @ T_world_camera
-    camera_t = torch.from_numpy(camera).float()[None]
-    T_lc = torch.from_numpy(T_local_camera).float()[None]
-    T_cl = torch.from_numpy(geometry.invert(T_local_camera)).float()[None]
+    camera_t = torch.from_numpy(camera).float()[None].to(device)
+    T_lc = torch.from_numpy(T_local_camera).float()[None].to(device)
+    T_cl = torch.from_numpy(geometry.invert(T_local_camera)).float()[None].to(device)
+    sync()
     timings["preprocess"] = time.perf_counter() - t
     with torch.no_grad():
         t = time.perf_counter()
         memory = model.memory(model.image_features(x), camera_t, T_lc)
         tokens = memory.flatten(1, 3)
+        sync()
         timings["backbone"] = time.perf_counter() - t
-        ref = torch.from_numpy(reference_points).float()[None]
+        ref = torch.from_numpy(reference_points).float()[None].to(device)
         per_iteration = []
         for _ in range(iters):
             t = time.perf_counter()
@@ -71,11 +78,12 @@ def reference_run(model, images, K, T_world_camera, iters, reference_points):
             content = pixel_aligned_features(memory, points, camera_t, T_cl)
             out = model.layer(content, ref, memory=tokens)
             ref = out["next_reference_points"]
+            sync()
             per_iteration.append(time.perf_counter() - t)
     timings["iterations"] = per_iteration
     t = time.perf_counter()
-    last = type("Last", (), {k: out[k][0].numpy() for k in ("center", "size", "ortho6d",
-                                                           "logits")})
+    last = type("Last", (), {k: out[k][0].cpu().numpy() for k in ("center", "size",
+                                                                 "ortho6d", "logits")})
     boxes.detections(last, T_world_local, list(config.classes), config.score_threshold,
                      config.nms_iou, config.eval_region)
     timings["postprocess"] = time.perf_counter() - t
