@@ -129,8 +129,8 @@ class Detector:
         self.layer = sessions.create(self.card.graph_path("layer"), threads, providers,
                                      spinning)
         self.classes = self.card.classes
-        self.device = sessions.device(self.backbone)
-        self.device_binding = (self.device != "cpu") if device_binding is None \
+        self.device = sessions.device(self.backbone)     # (type, id)
+        self.device_binding = (self.device[0] != "cpu") if device_binding is None \
             else bool(device_binding)
 
     def reference_points(self, queries: int) -> np.ndarray:
@@ -204,8 +204,8 @@ class Detector:
             for name, value in feeds.items():
                 binding.bind_cpu_input(name, np.ascontiguousarray(value))
             for name in outputs:
-                binding.bind_output(name, self.device if cached and name in loop.OPERAND_NAMES
-                                    else "cpu")
+                on_device = cached and name in loop.OPERAND_NAMES
+                binding.bind_output(name, *(self.device if on_device else ("cpu", 0)))
             self.backbone.run_with_iobinding(binding)
             result = {name: value if cached and name in loop.OPERAND_NAMES else value.numpy()
                       for name, value in zip(outputs, binding.get_outputs())}

@@ -172,7 +172,7 @@ class LayerRunner:
 
     def __init__(self, session, constant: dict, bind: bool | None = None):
         self.session = session
-        device = sessions.device(session)
+        device, device_id = sessions.device(session)
         self.binding = None
         if bind is None:
             bind = device != "cpu"
@@ -188,7 +188,7 @@ class LayerRunner:
                 continue
             value = np.ascontiguousarray(value)
             if value.size >= DEVICE_RESIDENT_ELEMENTS:
-                resident = ort.OrtValue.ortvalue_from_numpy(value, device, 0)
+                resident = ort.OrtValue.ortvalue_from_numpy(value, device, device_id)
                 self.resident.append(resident)
                 self.binding.bind_ortvalue_input(name, resident)
             else:

@@ -32,9 +32,10 @@ def session_options(threads: int | None = None, spinning: bool = False) -> ort.S
 
 
 # onnxruntime's CUDA provider multiplies fp32 in TF32 unless told otherwise; on an H200 that
-# moved the authors' configuration's box centres by up to 6e-3 m and sizes by 5e-2 against the
-# torch model (1e-4 and 1e-3 with TF32 off; benchmarks/results/latency-gpu.md).  A provider
-# named without options gets these, so that every provider is exact; pass options to choose.
+# moved the authors' configuration's box centres by up to 6.3e-3 m and sizes by 5.2e-2 against
+# the torch model (7.6e-6 m and 6.4e-5 with TF32 off in both; benchmarks/results/
+# latency-gpu-2026-12-01.md).  A provider named without options gets these, so that every
+# provider is exact; pass options to choose.
 EXACT_PROVIDER_OPTIONS = {"CUDAExecutionProvider": {"use_tf32": "0"}}
 
 
@@ -58,10 +59,14 @@ def resolve_providers(providers) -> list:
     return list(providers)
 
 
-def device(session) -> str:
-    """Where a session's graph runs: ``cuda`` when its first provider is onnxruntime's CUDA
-    provider, else ``cpu`` (the names ``OrtValue.ortvalue_from_numpy`` takes)."""
-    return "cuda" if session.get_providers()[0] == "CUDAExecutionProvider" else "cpu"
+def device(session) -> tuple:
+    """Where a session's graph runs, as (device type, device id): ("cuda", its device_id) when
+    its first provider is onnxruntime's CUDA provider, else ("cpu", 0); the names
+    ``OrtValue.ortvalue_from_numpy`` and ``IOBinding.bind_output`` take."""
+    first = session.get_providers()[0]
+    if first != "CUDAExecutionProvider":
+        return "cpu", 0
+    return "cuda", int(session.get_provider_options().get(first, {}).get("device_id", 0))
 
 
 def _preload_cuda() -> None:

@@ -141,7 +141,7 @@ def test_device_bound_layer_gives_the_plain_runs_outputs(tiny_model, form, monke
     from parq_runtime import loop, sessions
 
     det = Detector(tiny_model)
-    assert sessions.device(det.layer) == "cpu"
+    assert sessions.device(det.layer) == ("cpu", 0)
     assert loop.LayerRunner(det.layer, {}).binding is None    # CPU sessions run plainly
     rng = np.random.default_rng(3)
     camera, T_local_camera = verify.random_snippet(rng, 3, det.card)
