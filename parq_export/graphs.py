@@ -67,7 +67,7 @@ class BackboneGraph(nn.Module):
         new = self.model.backbone.levels(x)
         cached = (cached_level_0, cached_level_1, cached_level_2, cached_level_3)
         levels = [torch.cat([old, p.permute(0, 2, 3, 1)], 0) for old, p in zip(cached, new)]
-        return (*levels, self.model.ray_encoder.hidden(camera, T_local_camera))
+        return (*levels, self.model.ray_encoder.hidden_coordinate_major(camera, T_local_camera))
 
 
 class CachedOperands(nn.Module):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 
@@ -74,6 +75,33 @@ class RayEncoder(nn.Module):
         # As one 2-D matrix the Linear layer exports as Gemm with the bias (and the ReLU)
         # fused, instead of MatMul + a separate Add over the (N h w, C) result.
         hidden = self.mlp[1](self.mlp[0](points.reshape(-1, points.shape[-1])))
+        return hidden.reshape(*points.shape[:-1], hidden.shape[-1])
+
+    def hidden_coordinate_major(self, camera: torch.Tensor,
+                                T_local_camera: torch.Tensor) -> torch.Tensor:
+        """:meth:`hidden`, equal up to float rounding, in the arrangement the exported backbone
+        uses.  The points are formed coordinate-major, (..., N, h, w, 3, D), as
+        d_i * direction / span + (t - lo) / span: every pass over them broadcasts along the
+        contiguous depth axis.  In :meth:`hidden`'s (..., D, 3) order, four passes broadcast
+        along an inner axis of 3, which onnxruntime does element by element: 42 ms of the
+        authors' backbone on 2 AVX2 cores (profiled), against 3 ms for a plain pass.  The first
+        Linear layer's columns are permuted to match.  Training keeps :meth:`hidden`, so that
+        a seeded run rebuilds the same weights."""
+        f = camera[..., None, None, 0:2]
+        c = camera[..., None, None, 2:4]
+        xy = (self.pixels - c) / f                                    # (..., N, h, w, 2)
+        rays_camera = torch.cat([xy, torch.ones_like(xy[..., :1])], -1)
+        R = T_local_camera[..., None, None, :3, :3]
+        directions_local = R @ rays_camera[..., None]                 # (..., N, h, w, 3, 1)
+        lo = camera.new_tensor(self.scale[0::2])[:, None]              # (3, 1)
+        span = camera.new_tensor(self.scale[1::2])[:, None] - lo
+        t = T_local_camera[..., None, None, :3, 3:4]                  # (..., N, 1, 1, 3, 1)
+        points = directions_local / span * self.depths + (t - lo) / span  # (..., N, h, w, 3, D)
+        points = inverse_sigmoid(points).flatten(-2)                  # (x0..xD-1, y0.., z0..)
+        linear = self.mlp[0]
+        D = self.samples
+        weight = linear.weight.reshape(-1, D, 3).transpose(1, 2).reshape(-1, 3 * D)
+        hidden = torch.relu(F.linear(points.reshape(-1, 3 * D), weight, linear.bias))
         return hidden.reshape(*points.shape[:-1], hidden.shape[-1])
 
     def forward(self, camera: torch.Tensor, T_local_camera: torch.Tensor) -> torch.Tensor:
