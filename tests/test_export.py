@@ -189,6 +189,20 @@ def test_cuda_provider_named_alone_runs_in_exact_fp32(monkeypatch):
         sessions.resolve_providers("TensorrtExecutionProvider")
 
 
+def test_exported_ray_arrangement_equals_the_training_one(tiny_checkpoint):
+    """The backbone's coordinate-major ray points and permuted first layer give the ray MLP's
+    hidden layer of training (``RayEncoder.hidden``) up to float rounding."""
+    model = checkpoint.load(tiny_checkpoint).model()
+    camera, T_local_camera = verify.random_snippet(np.random.default_rng(5), 3, model.config)
+    encoder = model.ray_encoder
+    with torch.no_grad():
+        expected = encoder.hidden(torch.from_numpy(camera), torch.from_numpy(T_local_camera))
+        got = encoder.hidden_coordinate_major(torch.from_numpy(camera),
+                                              torch.from_numpy(T_local_camera))
+    assert got.shape == expected.shape
+    np.testing.assert_allclose(got.numpy(), expected.numpy(), atol=1e-5, rtol=1e-5)
+
+
 def test_graphs_agree_with_onnx_reference_evaluator(tiny_model):
     """Both graphs, both forms, one frame cached and one new, against onnx's reference
     evaluator (an independent implementation of every operator, the If included)."""
