@@ -200,14 +200,14 @@ class Detector:
                       "T_local_camera": np.ascontiguousarray(T_local_camera, dtype=np.float32),
                       "key_value": np.array(cached)})
         if self.device_binding:   # keys and values stay where the layer will read them
+            on_device = loop.OPERAND_NAMES if cached else ()
             binding = self.backbone.io_binding()
             for name, value in feeds.items():
                 binding.bind_cpu_input(name, np.ascontiguousarray(value))
             for name in outputs:
-                on_device = cached and name in loop.OPERAND_NAMES
-                binding.bind_output(name, *(self.device if on_device else ("cpu", 0)))
+                binding.bind_output(name, *(self.device if name in on_device else ("cpu", 0)))
             self.backbone.run_with_iobinding(binding)
-            result = {name: value if cached and name in loop.OPERAND_NAMES else value.numpy()
+            result = {name: value if name in on_device else value.numpy()
                       for name, value in zip(outputs, binding.get_outputs())}
         else:
             result = dict(zip(outputs, self.backbone.run(None, feeds)))

@@ -10,6 +10,7 @@ Choices (measured in ``benchmarks/session_options.py``; see the README):
 """
 from __future__ import annotations
 
+import functools
 import os
 
 import onnxruntime as ort
@@ -39,6 +40,11 @@ def session_options(threads: int | None = None, spinning: bool = False) -> ort.S
 EXACT_PROVIDER_OPTIONS = {"CUDAExecutionProvider": {"use_tf32": "0"}}
 
 
+def provider_name(provider) -> str:
+    """A provider as onnxruntime takes it, a name or (name, options) -> the name."""
+    return provider if isinstance(provider, str) else provider[0]
+
+
 def resolve_providers(providers) -> list:
     """None -> CPU; names are checked against what this onnxruntime build offers; a provider
     named without options gets EXACT_PROVIDER_OPTIONS."""
@@ -47,7 +53,7 @@ def resolve_providers(providers) -> list:
     if isinstance(providers, str):
         providers = [p.strip() for p in providers.split(",") if p.strip()]
     available = ort.get_available_providers()
-    names = [p if isinstance(p, str) else p[0] for p in providers]
+    names = [provider_name(p) for p in providers]
     unknown = [n for n in names if n not in available]
     if unknown:
         raise ParqError(f"execution provider {', '.join(unknown)} is not available in this "
@@ -69,9 +75,11 @@ def device(session) -> tuple:
     return "cuda", int(session.get_provider_options().get(first, {}).get("device_id", 0))
 
 
+@functools.cache
 def _preload_cuda() -> None:
     """onnxruntime-gpu finds CUDA and cuDNN in the nvidia-* wheels only after
-    ``preload_dlls`` (onnxruntime >= 1.21); a system-wide CUDA needs nothing."""
+    ``preload_dlls`` (onnxruntime >= 1.21); a system-wide CUDA needs nothing.  Once per
+    process: a Detector creates two sessions."""
     preload = getattr(ort, "preload_dlls", None)
     if preload is not None:
         try:
@@ -84,7 +92,7 @@ def create(path, threads=None, providers=None, spinning=False) -> ort.InferenceS
     if threads is not None and (int(threads) < 1 or int(threads) > 4 * (os.cpu_count() or 1)):
         raise ParqError(f"--threads {threads}: use 1 to {4 * (os.cpu_count() or 1)}")
     providers = resolve_providers(providers)
-    if any((p if isinstance(p, str) else p[0]) == "CUDAExecutionProvider" for p in providers):
+    if any(provider_name(p) == "CUDAExecutionProvider" for p in providers):
         _preload_cuda()
     try:
         return ort.InferenceSession(str(path), session_options(threads, spinning),
