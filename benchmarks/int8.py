@@ -87,9 +87,6 @@ def main():
             f1.append({t: metrics[t]["f1"] for t in metrics})
     card = json.loads((official[1] / "model.json").read_text())["quantization"]
     faster = speed[1]["median"] < speed[0]["median"]
-    cost = max(100 * (f1[0][t] - f1[1][t]) for t in f1[0]) if f1 else None
-    verdict = ("ships" if faster and cost <= 1.0 else "does not ship") if f1 else \
-        ("is faster" if faster else "is not faster: it does not ship")
     machine = common.machine()
     lines = [f"Machine: {machine['cpu']}, {machine['cores']} cores ({', '.join(machine['isa'])});"
              f" onnxruntime {machine['onnxruntime']}.", "",
@@ -98,14 +95,19 @@ def main():
              f"{speed[0]['median']:.3f} | {speed[1]['median']:.3f} |",
              f"| memory max abs diff vs torch (relative) | - | "
              f"{card['memory']:.3g} ({card['memory_relative']:.3g}) |"]
-    for t in (("0.25", "0.5", "0.7") if f1 else ()):
-        lines.append(f"| demo F1@{t}, {args.scenes} held-out scenes | {f1[0][t]:.3f} | "
-                     f"{f1[1][t]:.3f} |")
     ratio = speed[0]["median"] / speed[1]["median"]
-    lines += ["", f"int8 is {ratio:.2f}x the fp32 backbone's speed and costs up to {cost:.1f} "
-              f"F1 points: it {verdict} (bar: faster and at most 1 point)." if f1 else
-              f"int8 is {ratio:.2f}x the fp32 backbone's speed; F1 not measured (no "
-              f"--demo-checkpoint): it {verdict}."]
+    if f1:
+        for t in ("0.25", "0.5", "0.7"):
+            lines.append(f"| demo F1@{t}, {args.scenes} held-out scenes | {f1[0][t]:.3f} | "
+                         f"{f1[1][t]:.3f} |")
+        cost = max(100 * (f1[0][t] - f1[1][t]) for t in f1[0])
+        verdict = "ships" if faster and cost <= 1.0 else "does not ship"
+        lines += ["", f"int8 is {ratio:.2f}x the fp32 backbone's speed and costs up to "
+                  f"{cost:.1f} F1 points: it {verdict} (bar: faster and at most 1 point)."]
+    else:
+        verdict = "is faster" if faster else "is not faster: it does not ship"
+        lines += ["", f"int8 is {ratio:.2f}x the fp32 backbone's speed; F1 not measured (no "
+                  f"--demo-checkpoint): it {verdict}."]
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(
