@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import pathlib
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,6 +21,8 @@ from PIL import Image
 from parq_runtime import geometry, keyframes, preprocess
 from parq_runtime.errors import ParqError
 from parq_runtime.readers import open_capture
+
+from .progress import minutes
 
 
 @dataclass
@@ -117,8 +120,17 @@ def training_scenes(root, scenes: int, seed: int, frames: int, size, jobs: int =
     from parq_synth.writer import scene_name
 
     root = pathlib.Path(root)
+    missing = sum(not (root / scene_name(k)).exists() for k in range(scenes))
+    done, start = [], time.perf_counter()
+
+    def progress(result):
+        done.append(result)
+        if len(done) % 100 == 0:
+            log(f"generated {len(done)}/{missing} scenes  "
+                f"{minutes(time.perf_counter() - start, len(done), missing)}")
+
     made = generate(root, scenes, seed, frames=frames, size=tuple(size), jobs=jobs,
-                    skip_existing=True)
+                    skip_existing=True, progress=progress)
     if made:
         log(f"generated {len(made)} scenes into {root}")
     folders = [root / scene_name(k) for k in range(scenes)]

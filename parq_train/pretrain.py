@@ -21,6 +21,8 @@ from torch import nn
 from parq_runtime import keyframes, preprocess
 from parq_runtime.readers import open_capture
 
+from .progress import minutes
+
 
 class DenseHead(nn.Module):
     """features (B, C, h, w) -> log-depth (B, h, w) and class logits (B, classes + 1, h, w);
@@ -98,7 +100,8 @@ def pretrain(backbone: nn.Module, config, folders: list, steps: int, seed: int,
         if (step + 1) % log_every == 0 or step + 1 == steps:
             mean = {k: v / log_every for k, v in running.items()}
             history.append({"step": step + 1, **mean})
-            log(f"pretrain step {step + 1}/{steps}  {(time.perf_counter() - start) / 60:4.1f} "
-                f"min  depth {mean['depth']:.3f}  class {mean['class']:.3f}")
+            elapsed = time.perf_counter() - start
+            log(f"pretrain step {step + 1}/{steps}  {minutes(elapsed, step + 1, steps)}  "
+                f"depth {mean['depth']:.3f}  class {mean['class']:.3f}")
             running = {k: 0.0 for k in running}
     return history

@@ -22,6 +22,7 @@ from parq_export.backbone import FrozenBatchNorm2d
 from parq_export.model import PARQ
 
 from .loss import total_loss
+from .progress import minutes
 
 
 def swap_norms(module: nn.Module, to_trainable: bool) -> nn.Module:
@@ -146,7 +147,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
             mean = {k: v / log_every for k, v in running.items()}
             elapsed = time.perf_counter() - start
             history.append({"step": step + 1, "seconds": round(elapsed, 1), **mean})
-            log(f"step {step + 1}/{steps}  {elapsed / 60:5.1f} min  loss {mean['total']:.3f}  "
+            log(f"step {step + 1}/{steps}  {minutes(elapsed, step + 1, steps)}  "
+                f"loss {mean['total']:.3f}  "
                 + "  ".join(f"{k} {mean[k]:.3f}" for k in ("center", "size", "rotation",
                                                            "class")))
             running = {}

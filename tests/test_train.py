@@ -203,3 +203,12 @@ def test_training_scenes_complete_a_cache_and_refuse_one_made_otherwise(tmp_path
     with pytest.raises(ParqError, match=r"scene_00000: made with other arguments: frames 2 "
                                         r"\(wanted 3\)"):
         training_scenes(root, 2, seed=7, frames=3, size=(32, 24), log=lambda *_: None)
+
+
+def test_progress_reports_the_minutes_left_at_the_rate_so_far():
+    from parq_train.progress import minutes
+
+    assert minutes(120.0, 1, 4) == "  2.0 min, 6 left"      # 2 min a unit, 3 units to go
+    assert minutes(600.0, 250, 16000) == " 10.0 min, 630 left"
+    assert minutes(60.0, 5, 5) == "  1.0 min, 0 left"
+    assert minutes(30.0, 0, 5) == "  0.5 min"                # no rate yet: no estimate
