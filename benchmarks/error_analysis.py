@@ -18,6 +18,11 @@ does), and from those detections:
   --seen pixels). ScanNet's boxes are annotated on the reconstructed mesh, so an object that
   no frame saw has no box there; parq-synth's boxes.json lists every object in the room.
   parq-eval and the README's headline numbers count every object.
+* **centre errors along and across the viewing ray**: each detection with a ground-truth box
+  of its class within 1 m has its centre error split into the part along the ray from the
+  snippet's camera (depth) and the part across it; F1 is scored again with each part removed
+  (the detection moved by it, nothing else changed), and with the centre exact. What F1 gains
+  from removing a part is what that part costs.
 
     python benchmarks/error_analysis.py [--model models/parq-demo] [--scenes 40]
 """
@@ -67,13 +72,16 @@ def run_scene(detector, folder: pathlib.Path, iters: int, queries: int) -> dict:
     result = scene.run(detector, readers.open_capture(folder), settings)
     truth, up = evaluation.load_ground_truth(folder / "boxes.json")
     reach, visible, masks, snippets = np.zeros(len(truth)), np.zeros(len(truth)), {}, []
+    poses = []                                   # T_world_local of each snippet
     for s in result.snippets:
         T_local_world = geometry.invert(s.T_world_local)
         snippets.append([(b, geometry.transform(T_local_world, b.center)) for b in s.boxes])
+        poses.append(s.T_world_local)
         if s.boxes and truth:
             reach = np.maximum(reach, iou_matrix(s.boxes, truth, up).max(0))
         visible = np.maximum(visible, instance_pixels(folder, s.frames, len(truth), masks))
-    return {"snippets": snippets, "truth": truth, "up": up, "reach": reach, "visible": visible}
+    return {"snippets": snippets, "truth": truth, "up": up, "reach": reach, "visible": visible,
+            "poses": poses}
 
 
 def one_class(box):
@@ -123,6 +131,62 @@ def stages(scenes: list, card, classes) -> dict:
         out[f"fused ({card.fusion}), support {support}"] = {
             k: round(m[k], 4) for k in ("recall", "precision")}
     return out
+
+
+RAY_FIXES = ("as run", "along-ray error removed", "across-ray error removed", "centre exact")
+
+
+def ray_errors(scenes: list, card, classes, radius: float = 1.0) -> dict:
+    """Centre errors along / across the viewing ray and F1 with each removed (module doc).
+
+    The ray runs from the snippet frame's origin (its middle view's camera centre, world) to
+    the detection's centre; a detection is matched to the nearest ground-truth centre of its
+    class within ``radius`` metres, and unmatched ones stay as they are."""
+    from parq_runtime import geometry
+    from parq_train import tune
+
+    records = {fix: [] for fix in RAY_FIXES}
+    along, across = [], []
+    for s in scenes:
+        truth_centers = np.array([t.center for t in s["truth"]]).reshape(-1, 3)
+        truth_labels = np.array([t.label for t in s["truth"]])
+        fixed = {fix: [] for fix in RAY_FIXES}
+        for snippet, T_world_local in zip(s["snippets"], s["poses"]):
+            origin, R_world_local = T_world_local[:3, 3], T_world_local[:3, :3]
+            per_fix = {fix: [] for fix in RAY_FIXES}
+            for box, center_local in snippet:
+                center = np.asarray(box.center, dtype=np.float64)
+                moved = {fix: center for fix in RAY_FIXES}
+                same = np.flatnonzero(truth_labels == box.label)
+                if len(same):
+                    j = same[np.argmin(np.linalg.norm(truth_centers[same] - center, axis=1))]
+                    error = center - truth_centers[j]
+                    if np.linalg.norm(error) < radius:
+                        ray = geometry.unit(center - origin)
+                        error_along = ray * (ray @ error)
+                        if box.score > card.score_threshold:
+                            along.append(abs(ray @ error))
+                            across.append(np.linalg.norm(error - error_along))
+                        moved = {"as run": center, "along-ray error removed": center - error_along,
+                                 "across-ray error removed": center - (error - error_along),
+                                 "centre exact": truth_centers[j]}
+                for fix, c in moved.items():
+                    shift = c - center                                   # world frame
+                    per_fix[fix].append((dataclasses.replace(box, center=c,
+                                                             corners=box.corners + shift),
+                                         center_local + shift @ R_world_local))
+            for fix in RAY_FIXES:
+                fixed[fix].append(per_fix[fix])
+        for fix in RAY_FIXES:
+            records[fix].append((fixed[fix], s["truth"], s["up"]))
+    f1 = {}
+    for fix in RAY_FIXES:
+        m = tune.score(records[fix], card.score_threshold, card.eval_region, classes,
+                       card.fusion, card.min_support)
+        f1[fix] = {t: round(m[t]["f1"], 4) for t in m}
+    return {"matched": len(along), "median_along": round(float(np.median(along)), 4) if along
+            else None, "median_across": round(float(np.median(across)), 4) if across else None,
+            "f1": f1}
 
 
 def reach_table(scenes: list, classes) -> dict:
@@ -179,6 +243,18 @@ def markdown(results: list, args, pixels: int) -> str:
         cells = ["-" if entry(r["reach"])[f"reach@{t}"] is None
                  else f"{entry(r['reach'])[f'reach@{t}']:.2f}" for r in results for t in IOUS]
         lines.append(f"| {label} | {entry(first)['objects']} | " + " | ".join(cells) + " |")
+    lines += ["", "Centre errors of the detections above the score threshold that have a "
+              "ground-truth box of their class within 1 m, split along and across the ray from "
+              "the snippet's camera: " + "; ".join(
+                  f"{r['setting']}: {r['ray']['matched']} detections, median along "
+                  f"{r['ray']['median_along']} m, across {r['ray']['median_across']} m"
+                  for r in results) + ". F1 with each part removed (the rest unchanged):", "",
+              "| centre | " + " | ".join(f"F1@{t} ({r['setting']})" for r in results
+                                       for t in IOUS) + " |",
+              "|---|" + "---:|" * (len(results) * len(IOUS))]
+    for fix in RAY_FIXES:
+        lines.append(f"| {fix} | " + " | ".join(f"{r['ray']['f1'][fix][str(t)]:.3f}"
+                                                for r in results for t in IOUS) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -206,7 +282,8 @@ def main():
         results.append({"setting": setting, "f1": scores(scenes, detector.card,
                                                          detector.classes, args.seen),
                         "stages": stages(scenes, detector.card, detector.classes),
-                        "reach": reach_table(scenes, detector.classes)})
+                        "reach": reach_table(scenes, detector.classes),
+                        "ray": ray_errors(scenes, detector.card, detector.classes)})
         print(json.dumps(results[-1]["f1"]), file=sys.stderr, flush=True)
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
