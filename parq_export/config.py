@@ -70,6 +70,9 @@ class PARQConfig:
     # learned queries, most useful first (parq_train.tune): a run with fewer queries starts
     # from the first ones; () = farthest-point sampling (parq_runtime.queries)
     query_order: tuple = ()
+    # keyframes between a snippet's views: 1 = consecutive (the authors'); a model trained on
+    # wider snippets (parq-train --gap) records its gap here and parq-run uses it
+    snippet_gap: int = 1
     extra: dict = field(default_factory=dict, compare=False)  # free-form provenance
 
     feature_stride = 4  # FPN level P2; every level is resized to it
@@ -96,6 +99,9 @@ class PARQConfig:
         if self.query_order and sorted(self.query_order) != list(range(self.num_queries)):
             problems.append(f"query_order must be a permutation of the {self.num_queries} "
                             "learned queries")
+        if isinstance(self.snippet_gap, bool) or not isinstance(self.snippet_gap, int) \
+                or self.snippet_gap < 1:
+            problems.append(f"snippet_gap {self.snippet_gap!r} must be an integer >= 1")
         if not 0 < self.ray_depth[0] < self.ray_depth[1]:
             problems.append(f"ray_depth {self.ray_depth} must be 0 < near < far")
         if problems:

@@ -167,6 +167,7 @@ def build_card(model: PARQ, checkpoint: ckpt.Checkpoint, source: pathlib.Path,
         "postprocess": {"score_threshold": c.score_threshold, "nms_iou": c.nms_iou,
                         "eval_region": list(c.eval_region), "fusion": c.fusion,
                         "min_support": c.min_support},
+        "snippets": {"gap": c.snippet_gap},
         "limits": {"max_views": MAX_VIEWS, "max_queries": MAX_QUERIES},
         "graphs": {
             "backbone": {"file": "backbone.onnx", "inputs": list(BACKBONE_INPUTS) + ["key_value"],

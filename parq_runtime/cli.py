@@ -46,6 +46,9 @@ def parser() -> argparse.ArgumentParser:
                    help="keyframes per snippet (default 3, as the authors train)")
     p.add_argument("--stride", type=positive_int, default=None,
                    help="keyframes between snippet starts (default: --views, no overlap)")
+    p.add_argument("--gap", type=positive_int, default=None,
+                   help="keyframes between a snippet's views (default: the model card's; 1, "
+                        "consecutive keyframes, for the authors' checkpoints)")
     p.add_argument("--score-threshold", type=score, default=None,
                    help="keep boxes scoring above this (default: the model card's, 0.8 for "
                         "the authors' checkpoints)")
@@ -140,14 +143,17 @@ def run(args) -> int:
                         f"{detector.card.max_views} views per snippet")
     settings = scene.RunSettings(
         iters=args.iters, queries=args.queries, views=args.views, stride=args.stride,
+        gap=args.gap,
         score_threshold=args.score_threshold, region=not args.all_regions, form=args.form,
         keyframe_angle=args.keyframe_angle, keyframe_distance=args.keyframe_distance,
         max_snippets=args.max_snippets, fusion=args.fusion, min_support=args.min_support)
     detector.reference_points(args.queries)  # argument check before the long part
-    keys, snippets = scene.plan(capture, settings)
+    gap = args.gap or detector.card.snippet_gap
+    keys, snippets = scene.plan(capture, settings, gap)
     if not snippets:
+        spacing = f" {gap} keyframes apart" if gap > 1 else ""
         raise ParqError(f"{args.frames}: {len(capture.frames)} frames give {len(keys)} "
-                        f"keyframes, fewer than one snippet of {args.views} views")
+                        f"keyframes, fewer than one snippet of {args.views} views{spacing}")
     used = sorted({i for snippet in snippets for i in snippet})
     readers.check_headers(capture.frames[i] for i in used)   # fail before the long part
     result = scene.run(detector, capture, settings, Progress(not args.quiet))

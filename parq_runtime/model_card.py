@@ -100,6 +100,12 @@ class ModelCard:
         return int(self.raw["postprocess"].get("min_support", fusion.AUTHORS_MIN_SUPPORT))
 
     @property
+    def snippet_gap(self) -> int:
+        """Keyframes between a snippet's views the model was trained with (1: consecutive, the
+        authors'; cards written before it was recorded have 1)."""
+        return int(self.raw.get("snippets", {}).get("gap", 1))
+
+    @property
     def max_views(self) -> int:
         return int(self.raw["limits"]["max_views"])
 
@@ -171,4 +177,9 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
     if len(card.mean_sizes) != len(card.classes) + 1:
         raise ParqError(f"{path}: {len(card.mean_sizes)} mean sizes for {len(card.classes)} "
                         "classes")
+    snippets = raw.get("snippets", {})
+    gap = snippets.get("gap", 1) if isinstance(snippets, dict) else None
+    if isinstance(gap, bool) or not isinstance(gap, int) or gap < 1:
+        raise ParqError(f"{path}: snippets.gap must be an integer >= 1 (keyframes between a "
+                        f"snippet's views), got {gap!r}")
     return card

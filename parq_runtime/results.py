@@ -3,7 +3,7 @@
     {
       "schema": "parq-onnx/detections", "version": 1,
       "model":    {"folder", "checkpoint_sha256", "package_version"},
-      "settings": {"iters", "queries", "views", "stride", "score_threshold", "region",
+      "settings": {"iters", "queries", "views", "stride", "gap", "score_threshold", "region",
                    "form", "keyframe_angle_deg", "keyframe_distance_m"},
       "capture":  {"path", "format", "up", "frames", "keyframes", "notes"},
       "snippets": [{"index", "frames": [names], "T_world_local": 4x4, "form", "seconds",
@@ -46,6 +46,7 @@ def to_json(scene, settings, card, score_threshold: float) -> dict:
                   "package_version": __version__},
         "settings": {"iters": settings.iters, "queries": settings.queries,
                      "views": settings.views, "stride": settings.stride or settings.views,
+                     "gap": settings.gap or card.snippet_gap,
                      "score_threshold": score_threshold, "region": settings.region,
                      "fusion": scene.fusion.mode, "min_support": scene.fusion.min_support,
                      "form": settings.form, "keyframe_angle_deg": settings.keyframe_angle,

@@ -21,6 +21,7 @@ class RunSettings:
     queries: int = 32
     views: int = 3
     stride: int | None = None
+    gap: int | None = None                # None: the model card's
     score_threshold: float | None = None
     region: bool = True
     form: str = "auto"
@@ -50,11 +51,13 @@ class SceneResult:
     seconds: float = 0.0
 
 
-def plan(capture: Capture, settings: RunSettings) -> tuple:
-    """(keyframe indices, snippets as lists of frame indices)."""
+def plan(capture: Capture, settings: RunSettings, card_gap: int = 1) -> tuple:
+    """(keyframe indices, snippets as lists of frame indices); a snippet's views are
+    ``settings.gap`` keyframes apart, or ``card_gap`` (the model card's) when that is None."""
     keys = keyframes.select([f.cam_to_world for f in capture.frames], settings.keyframe_angle,
                             settings.keyframe_distance)
-    snippets = keyframes.windows(keys, settings.views, settings.stride)
+    snippets = keyframes.windows(keys, settings.views, settings.stride,
+                                 settings.gap or card_gap)
     if settings.max_snippets is not None:
         snippets = snippets[:settings.max_snippets]
     return keys, snippets
@@ -63,15 +66,20 @@ def plan(capture: Capture, settings: RunSettings) -> tuple:
 def run(detector, capture: Capture, settings: RunSettings, progress=None) -> SceneResult:
     """Detect in every snippet and fuse; ``progress(done, total)`` is called per snippet."""
     start = time.perf_counter()
-    keys, snippets = plan(capture, settings)
+    keys, snippets = plan(capture, settings, detector.card.snippet_gap)
     result = SceneResult(capture, [capture.frames[i].name for i in keys],
                          fusion=SceneFusion(
                              up=capture.up,
                              mode=settings.fusion or detector.card.fusion,
                              min_support=settings.min_support or detector.card.min_support))
     # Overlapping windows share frames: their image features are computed once (streaming).
-    cache = FeatureCache(settings.views) if (settings.stride or settings.views) < \
-        settings.views else None
+    # An LRU cache of span + gap - 1 frames never encodes one twice (simulated for 1-9 views,
+    # gaps 1-6 and every stride below the span; tests/test_export.py runs five cases); with
+    # gap 1 that is the span, as before gaps existed.
+    gap = settings.gap or detector.card.snippet_gap
+    span = keyframes.span_of(settings.views, gap)
+    cache = FeatureCache(span + gap - 1) if (settings.stride or settings.views) < span \
+        else None
     for n, indices in enumerate(snippets):
         t = time.perf_counter()
         frames = [capture.frames[i] for i in indices]

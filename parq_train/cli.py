@@ -61,6 +61,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=positive_int, default=16000,
                    help="PARQ training steps with the paper's objective (default 16000)")
     p.add_argument("--batch", type=positive_int, default=4, help="snippets per step (default 4)")
+    p.add_argument("--gap", type=positive_int, default=1,
+                   help="keyframes between a training snippet's views (default 1: consecutive, "
+                        "as the authors); recorded in the model card, so parq-run forms its "
+                        "snippets the same way")
     p.add_argument("--iterations", type=positive_int, default=4,
                    help="recurrent iterations supervised per step (default 4)")
     p.add_argument("--lr", type=positive_float, default=5e-4,
@@ -101,7 +105,7 @@ def run(args, argv) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     form = "fused" if args.fused_attention else "cached"   # PARQ.forward's attention form
-    config = demo_config(iterations=args.iterations)
+    config = demo_config(iterations=args.iterations, snippet_gap=args.gap)
     start = time.perf_counter()
     log = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
     folders = data.training_scenes(args.data, args.scenes, TRAIN_SEED, args.frames,
@@ -130,7 +134,8 @@ def run(args, argv) -> int:
                        "frames": args.frames, "folder": str(args.data),
                        "snippets": len(snippets)},
               "pretrain_steps": args.pretrain_steps, "steps": args.steps, "batch": args.batch,
-              "iterations": args.iterations, "lr": args.lr, "backbone_lr": args.backbone_lr,
+              "iterations": args.iterations, "gap": args.gap, "lr": args.lr,
+              "backbone_lr": args.backbone_lr,
               "attention": form,
               "threads": torch.get_num_threads(),
               "minutes": {"generate": round(generated / 60, 1),

@@ -54,7 +54,8 @@ def _inside(points, scale) -> np.ndarray:
 
 
 def scene_snippets(folder, config, views: int = 3, stride: int = 1) -> list:
-    """Snippets of one generated scene for a model with ``config`` (PARQConfig)."""
+    """Snippets of one generated scene for a model with ``config`` (PARQConfig): windows of
+    ``views`` keyframes ``config.snippet_gap`` apart, starting every ``stride`` keyframes."""
     folder = pathlib.Path(folder)
     capture = open_capture(folder, "scannet")
     boxes = read_boxes(folder / "boxes.json")
@@ -65,7 +66,7 @@ def scene_snippets(folder, config, views: int = 3, stride: int = 1) -> list:
     keys = keyframes.select([f.cam_to_world for f in capture.frames])
     out = []
     cache = {}
-    for window in keyframes.windows(keys, views, stride):
+    for window in keyframes.windows(keys, views, stride, config.snippet_gap):
         frames = [capture.frames[i] for i in window]
         images, K_net, depths = [], [], []
         for f in frames:

@@ -77,6 +77,29 @@ def test_fewer_queries_start_from_the_cards_ranking_or_farthest_points(tiny_mode
         config.replace(query_order=(0,) * K)
 
 
+def test_snippet_gap_is_written_to_the_card_and_checked(tiny_model, tmp_path):
+    """The exported card records the training gap (1 by default); a card without one reads as
+    1 (cards written before it); one that is not an integer >= 1 is refused, as is a config."""
+    card = json.loads((tiny_model / "model.json").read_text())
+    assert card["snippets"] == {"gap": 1} and Detector(tiny_model).card.snippet_gap == 1
+    other = tmp_path / "other"
+    other.mkdir()
+    for f in ("backbone.onnx", "layer.onnx"):
+        (other / f).write_bytes((tiny_model / f).read_bytes())
+    old = {k: v for k, v in card.items() if k != "snippets"}
+    (other / "model.json").write_text(json.dumps(old))
+    assert Detector(other).card.snippet_gap == 1
+    (other / "model.json").write_text(json.dumps(dict(card, snippets={"gap": 3})))
+    assert Detector(other).card.snippet_gap == 3
+    for bad in ({"gap": 0}, {"gap": "3"}, {"gap": True}, [3]):
+        (other / "model.json").write_text(json.dumps(dict(card, snippets=bad)))
+        with pytest.raises(ParqError, match="snippets.gap must be an integer"):
+            Detector(other)
+    assert tiny_config().replace(snippet_gap=2).snippet_gap == 2
+    with pytest.raises(ValueError, match="snippet_gap"):
+        tiny_config().replace(snippet_gap=0)
+
+
 def test_views_resized_in_parallel_equal_one_at_a_time(tiny_model):
     """The thread pool that resizes a snippet's views changes nothing: the same images and
     cameras as one view at a time, and a bad view is still named (the first in view order)."""
@@ -319,6 +342,30 @@ def test_streaming_reuses_features_and_changes_nothing(tiny_model, form):
         for a, b in zip(streamed.iterations, scratch.iterations):
             np.testing.assert_allclose(a.center, b.center, atol=1e-5)
             np.testing.assert_allclose(a.logits, b.logits, atol=1e-4)
+
+
+@pytest.mark.parametrize("gap, stride", [(1, 1), (2, 1), (3, 1), (3, 2), (2, 3)])
+def test_scene_run_encodes_each_frame_once_whatever_the_gap(tiny_model, tmp_path, gap, stride):
+    """Overlapping windows whose views are ``gap`` keyframes apart: the scene's LRU feature
+    cache is large enough that no frame goes through the image encoder twice."""
+    from parq_runtime import readers, scene
+
+    from conftest import write_scannet
+
+    capture = readers.open_capture(write_scannet(tmp_path / "scene", frames=14))
+    det = Detector(tiny_model)
+    passed = []
+    detect = det.detect
+
+    def counting(images, *args, **kwargs):
+        passed.extend(k for k, im in zip(kwargs["frame_keys"], images) if im is not None)
+        return detect(images, *args, **kwargs)
+
+    det.detect = counting
+    result = scene.run(det, capture, scene.RunSettings(queries=8, stride=stride, gap=gap))
+    windows = [[int(name) for name in s.frames] for s in result.snippets]
+    assert windows and all(w == list(range(w[0], w[0] + 2 * gap + 1, gap)) for w in windows)
+    assert sorted(passed) == sorted({i for w in windows for i in w})
 
 
 def test_attention_form_is_the_one_with_fewer_multiply_adds():

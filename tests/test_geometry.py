@@ -119,3 +119,8 @@ def test_keyframes_by_turn_and_motion():
     assert keyframes.select(moves) == [0, 3, 5]        # 0.11 > 0.1; 0.25 - 0.11 > 0.1
     assert keyframes.windows(list(range(8)), 3) == [[0, 1, 2], [3, 4, 5]]
     assert keyframes.windows(list(range(5)), 3, 1) == [[0, 1, 2], [1, 2, 3], [2, 3, 4]]
+    assert keyframes.windows(list(range(8)), 3, 1, gap=3) == [[0, 3, 6], [1, 4, 7]]
+    assert keyframes.windows(list(range(11)), 3, gap=2) == [[0, 2, 4], [3, 5, 7], [6, 8, 10]]
+    assert keyframes.windows(list(range(4)), 3, gap=2) == []      # spans 5 keyframes
+    with pytest.raises(ParqError, match="gap"):
+        keyframes.windows(list(range(8)), 3, gap=0)

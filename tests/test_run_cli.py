@@ -92,6 +92,35 @@ def test_parq_run_end_to_end(tiny_model, tmp_path, authors_names):
     assert min(b["support"] for b in data["scene"]["boxes"]) >= 1
 
 
+def test_parq_run_spaces_a_snippets_views_by_the_gap(tiny_model, tmp_path):
+    """--gap 2 takes every other keyframe into a snippet (the JSON records the gap); without
+    the flag the model card's gap applies, and a capture too short for one such snippet is a
+    one-line error that names the spacing."""
+    folder = write_scannet(tmp_path / "scene", frames=14)
+    code, stdout, stderr = run_cli(folder, "--model", tiny_model, "--queries", 8,
+                                   "--stride", 1, "--gap", 2, "-q")
+    assert code == 0, stderr
+    data = json.loads(stdout)
+    assert data["settings"]["gap"] == 2
+    assert [s["frames"] for s in data["snippets"]] == [
+        [str(i) for i in (s, s + 2, s + 4)] for s in range(10)]
+    card = json.loads((tiny_model / "model.json").read_text())
+    model = tmp_path / "model"
+    model.mkdir()
+    for f in ("backbone.onnx", "layer.onnx"):
+        (model / f).write_bytes((tiny_model / f).read_bytes())
+    (model / "model.json").write_text(json.dumps(dict(card, snippets={"gap": 3})))
+    code, stdout, stderr = run_cli(folder, "--model", model, "--queries", 8, "-q")
+    assert code == 0, stderr
+    data = json.loads(stdout)
+    assert data["settings"]["gap"] == 3
+    assert [s["frames"] for s in data["snippets"]] == [
+        [str(i) for i in (s, s + 3, s + 6)] for s in (0, 3, 6)]
+    short = write_scannet(tmp_path / "short", frames=6)
+    _one_line_error(*run_cli(short, "--model", model, "-q"), "6 keyframes",
+                    "3 views 3 keyframes apart")
+
+
 def _one_line_error(code, stdout, stderr, *needles):
     assert code == 2, (code, stderr)
     assert "Traceback" not in stderr

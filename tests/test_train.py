@@ -212,3 +212,24 @@ def test_progress_reports_the_minutes_left_at_the_rate_so_far():
     assert minutes(600.0, 250, 16000) == " 10.0 min, 630 left"
     assert minutes(60.0, 5, 5) == "  1.0 min, 0 left"
     assert minutes(30.0, 0, 5) == "  0.5 min"                # no rate yet: no estimate
+
+
+def test_training_snippets_take_views_the_configs_gap_apart(tmp_path):
+    """parq-train --gap: a training snippet's views are snippet_gap keyframes apart, the windows
+    parq-run forms for a card with that gap, in the middle view's gravity-aligned frame."""
+    from parq_runtime import geometry, keyframes
+    from parq_runtime.readers import open_capture
+    from parq_train.data import scene_snippets, training_scenes
+
+    folder = training_scenes(tmp_path / "train", 1, seed=3, frames=12, size=(64, 48),
+                             log=lambda *_: None)[0]
+    capture = open_capture(folder, "scannet")
+    keys = keyframes.select([f.cam_to_world for f in capture.frames])
+    for gap in (1, 2):
+        snippets = scene_snippets(folder, tiny_config(snippet_gap=gap), views=3, stride=1)
+        windows = keyframes.windows(keys, 3, 1, gap)
+        assert len(snippets) == len(windows) > 0
+        for s, window in zip(snippets, windows):
+            T_world_camera = np.stack([capture.frames[i].cam_to_world for i in window])
+            expected = geometry.invert(geometry.snippet_frame(T_world_camera)) @ T_world_camera
+            np.testing.assert_allclose(s.T_local_camera, expected, atol=1e-5)
