@@ -148,9 +148,9 @@ def run(args) -> int:
         keyframe_angle=args.keyframe_angle, keyframe_distance=args.keyframe_distance,
         max_snippets=args.max_snippets, fusion=args.fusion, min_support=args.min_support)
     detector.reference_points(args.queries)  # argument check before the long part
-    gap = args.gap or detector.card.snippet_gap
-    keys, snippets = scene.plan(capture, settings, gap)
+    keys, snippets = scene.plan(capture, settings, detector.card)
     if not snippets:
+        gap = scene.snippet_gap(settings, detector.card)
         spacing = f" {gap} keyframes apart" if gap > 1 else ""
         raise ParqError(f"{args.frames}: {len(capture.frames)} frames give {len(keys)} "
                         f"keyframes, fewer than one snippet of {args.views} views{spacing}")

@@ -46,7 +46,7 @@ def to_json(scene, settings, card, score_threshold: float) -> dict:
                   "package_version": __version__},
         "settings": {"iters": settings.iters, "queries": settings.queries,
                      "views": settings.views, "stride": settings.stride or settings.views,
-                     "gap": settings.gap or card.snippet_gap,
+                     "gap": scene.gap,
                      "score_threshold": score_threshold, "region": settings.region,
                      "fusion": scene.fusion.mode, "min_support": scene.fusion.min_support,
                      "form": settings.form, "keyframe_angle_deg": settings.keyframe_angle,

@@ -49,15 +49,20 @@ class SceneResult:
     snippets: list = field(default_factory=list)
     fusion: SceneFusion | None = None
     seconds: float = 0.0
+    gap: int = 1          # keyframes between a snippet's views, as run
 
 
-def plan(capture: Capture, settings: RunSettings, card_gap: int = 1) -> tuple:
-    """(keyframe indices, snippets as lists of frame indices); a snippet's views are
-    ``settings.gap`` keyframes apart, or ``card_gap`` (the model card's) when that is None."""
+def snippet_gap(settings: RunSettings, card) -> int:
+    """Keyframes between a snippet's views: the settings' gap, else the model card's."""
+    return settings.gap or card.snippet_gap
+
+
+def plan(capture: Capture, settings: RunSettings, card) -> tuple:
+    """(keyframe indices, snippets as lists of frame indices) for a model with ``card``."""
     keys = keyframes.select([f.cam_to_world for f in capture.frames], settings.keyframe_angle,
                             settings.keyframe_distance)
     snippets = keyframes.windows(keys, settings.views, settings.stride,
-                                 settings.gap or card_gap)
+                                 snippet_gap(settings, card))
     if settings.max_snippets is not None:
         snippets = snippets[:settings.max_snippets]
     return keys, snippets
@@ -66,7 +71,7 @@ def plan(capture: Capture, settings: RunSettings, card_gap: int = 1) -> tuple:
 def run(detector, capture: Capture, settings: RunSettings, progress=None) -> SceneResult:
     """Detect in every snippet and fuse; ``progress(done, total)`` is called per snippet."""
     start = time.perf_counter()
-    keys, snippets = plan(capture, settings, detector.card.snippet_gap)
+    keys, snippets = plan(capture, settings, detector.card)
     result = SceneResult(capture, [capture.frames[i].name for i in keys],
                          fusion=SceneFusion(
                              up=capture.up,
@@ -76,7 +81,7 @@ def run(detector, capture: Capture, settings: RunSettings, progress=None) -> Sce
     # An LRU cache of span + gap - 1 frames never encodes one twice (simulated for 1-9 views,
     # gaps 1-6 and every stride below the span; tests/test_export.py runs five cases); with
     # gap 1 that is the span, as before gaps existed.
-    gap = settings.gap or detector.card.snippet_gap
+    gap = result.gap = snippet_gap(settings, detector.card)
     span = keyframes.span_of(settings.views, gap)
     cache = FeatureCache(span + gap - 1) if (settings.stride or settings.views) < span \
         else None
