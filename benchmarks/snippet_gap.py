@@ -67,7 +67,7 @@ def score(args) -> None:
     import tradeoff
 
     from parq_export import cli as export_cli
-    from parq_runtime import Detector, evaluation, readers, scene
+    from parq_runtime import Detector
     from parq_train import tune
 
     tuned = args.folder.with_name(args.folder.name + "-tuned.pt")
@@ -81,14 +81,8 @@ def score(args) -> None:
         m, _ = tradeoff.evaluate_setting(detector, scenes, iters, 32)
         print(f"{args.folder} (gap {gap}), {iters} x 32: " + f1_line(m), flush=True)
     other = 3 if gap == 1 else 1
-    pairs = []
-    for folder in scenes:
-        result = scene.run(detector, readers.open_capture(folder),
-                           scene.RunSettings(iters=2, queries=32, gap=other))
-        truth, up = evaluation.load_ground_truth(folder / "boxes.json")
-        pairs.append((result.fusion.boxes, truth, up))
-    print(f"{args.folder} run at gap {other}, 2 x 32: "
-          + f1_line(evaluation.evaluate(pairs, detector.classes)), flush=True)
+    m, _ = tradeoff.evaluate_setting(detector, scenes, 2, 32, gap=other)
+    print(f"{args.folder} run at gap {other}, 2 x 32: " + f1_line(m), flush=True)
     sys.argv = ["error_analysis", "--model", str(args.folder), "--settings", "2x32",
                 "--out", str(args.folder.with_name(args.folder.name + "-errors"))]
     error_analysis.main()

@@ -54,12 +54,15 @@ def held_out_scenes(folder: pathlib.Path, scenes: int, frames: int, size) -> lis
     return [folder / scene_name(k) for k in range(scenes)]
 
 
-def evaluate_setting(detector, scenes, iters, queries, score_threshold=None) -> tuple:
-    """(metrics, per-snippet seconds) over the scenes."""
+def evaluate_setting(detector, scenes, iters, queries, score_threshold=None,
+                     gap=None) -> tuple:
+    """(metrics, per-snippet seconds) over the scenes; ``gap``: keyframes between a snippet's
+    views (None: the model card's)."""
     from parq_runtime import evaluation, readers, scene
 
     pairs, seconds = [], []
-    settings = scene.RunSettings(iters=iters, queries=queries, score_threshold=score_threshold)
+    settings = scene.RunSettings(iters=iters, queries=queries, score_threshold=score_threshold,
+                                 gap=gap)
     for folder in scenes:
         capture = readers.open_capture(folder)
         result = scene.run(detector, capture, settings)
