@@ -36,14 +36,18 @@ def pretrain(args) -> None:
     model = train.new_model(config, args.seed, None)
     backbone_pretraining.pretrain(model.backbone, config, folders, args.steps, args.seed,
                                   log_every=250)
-    torch.save(model.backbone.state_dict(), args.output)
+    backbone_pretraining.save_backbone(
+        args.output, model.backbone,
+        {"steps": args.steps, "seed": args.seed,
+         "data": {"seed": TRAIN_SEED, "scenes": len(folders), "frames": 30},
+         "image_size": list(config.image_size), "command": "benchmarks/snippet_gap.py"})
 
 
 def train_gap(args) -> None:
     import torch
 
     from parq_export import checkpoint
-    from parq_train import data, train
+    from parq_train import data, pretrain, train
     from parq_train.cli import TRAIN_SEED, demo_config
     from parq_train.symmetry import folds_of_class
 
@@ -52,7 +56,7 @@ def train_gap(args) -> None:
     folders = data.training_scenes(TRAIN, 1600, TRAIN_SEED, 30, config.image_size, jobs=2)
     snippets = data.load_scenes(folders, config)
     model = train.new_model(config, args.seed, snippets)
-    model.backbone.load_state_dict(torch.load(args.pretrained))
+    pretrain.load_backbone(args.pretrained, model.backbone, config)
     model, history = train.train(config, snippets, args.steps, args.seed,
                                  folds_of_class(config.classes), batch_size=4, iterations=4,
                                  lr=5e-4, log_every=250, model=model, form="cached")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import hashlib
 import json
 import os
 import pathlib
@@ -58,6 +59,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--pretrain-steps", type=non_negative_int, default=8000,
                    help="backbone pretraining steps on depth and object classes, the stand-in "
                         "for ImageNet weights (default 8000; 0 skips it)")
+    p.add_argument("--pretrained", type=pathlib.Path, default=None,
+                   help="start from this pretrained backbone instead of pretraining (the "
+                        "OUTPUT stem + '-pretrained.pt' that every run with pretraining writes; "
+                        "--pretrain-steps is then ignored): the same weights as pretraining "
+                        "again with that file's steps and seed, without its minutes")
     p.add_argument("--steps", type=positive_int, default=16000,
                    help="PARQ training steps with the paper's objective (default 16000)")
     p.add_argument("--batch", type=positive_int, default=4, help="snippets per step (default 4)")
@@ -113,9 +119,23 @@ def run(args, argv) -> int:
     generated = time.perf_counter() - start
     snippets = data.load_scenes(folders, config, log=log)
     model = train.new_model(config, args.seed, snippets)
-    pre_history = pretrain.pretrain(model.backbone, config, folders, args.pretrain_steps,
-                                    args.seed, log=log, log_every=500) \
-        if args.pretrain_steps else []
+    pre_history, pre_record = [], {"steps": 0}
+    if args.pretrained:
+        pre_record = pretrain.load_backbone(args.pretrained, model.backbone, config)
+        pre_record = dict(pre_record, file=str(args.pretrained),
+                          sha256=hashlib.sha256(args.pretrained.read_bytes()).hexdigest())
+        log(f"backbone from {args.pretrained} ({pre_record['steps']} pretraining steps)")
+    elif args.pretrain_steps:
+        pre_history = pretrain.pretrain(model.backbone, config, folders, args.pretrain_steps,
+                                        args.seed, log=log, log_every=500)
+        pre_record = {"steps": args.pretrain_steps, "seed": args.seed,
+                      "data": {"seed": TRAIN_SEED, "scenes": len(folders),
+                               "frames": args.frames},
+                      "image_size": list(config.image_size),
+                      "minutes": round((time.perf_counter() - start - generated) / 60, 1)}
+        path = args.output.with_name(f"{args.output.stem}-pretrained.pt")
+        pretrain.save_backbone(path, model.backbone, pre_record)
+        log(f"pretrained backbone {path}")
     pretrained = time.perf_counter() - start - generated
     def snapshot(model_now, step):
         path = args.output.with_name(f"{args.output.stem}-step{step}.pt")
@@ -133,7 +153,8 @@ def run(args, argv) -> int:
               "data": {"generator": "parq-synth", "seed": TRAIN_SEED, "scenes": len(folders),
                        "frames": args.frames, "folder": str(args.data),
                        "snippets": len(snippets)},
-              "pretrain_steps": args.pretrain_steps, "steps": args.steps, "batch": args.batch,
+              "pretrain_steps": pre_record["steps"], "pretraining": pre_record,
+              "steps": args.steps, "batch": args.batch,
               "iterations": args.iterations, "gap": args.gap, "lr": args.lr,
               "backbone_lr": args.backbone_lr,
               "attention": form,

@@ -105,3 +105,44 @@ def pretrain(backbone: nn.Module, config, folders: list, steps: int, seed: int,
                 f"depth {mean['depth']:.3f}  class {mean['class']:.3f}")
             running = {k: 0.0 for k in running}
     return history
+
+
+PRETRAINED_FORMAT = "parq-train pretrained backbone"
+
+
+def save_backbone(path, backbone: nn.Module, record: dict) -> None:
+    """Write a pretrained ResNet-FPN (trainable norms, as :func:`pretrain` leaves it) with
+    ``record`` (how it was made: steps, seed, data, image size), for ``parq-train --pretrained``.
+    Tensors and plain values only, so :func:`load_backbone` reads it without unpickling code."""
+    path = pathlib.Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save({"format": PRETRAINED_FORMAT, "pretraining": record,
+                "backbone": backbone.state_dict()}, tmp)
+    tmp.replace(path)
+
+
+def load_backbone(path, backbone: nn.Module, config) -> dict:
+    """Load a file of :func:`save_backbone` into ``backbone`` (in place); returns its record.
+    ParqError, naming the file, for a missing or foreign file, or one made for another
+    backbone or image size than ``config``'s."""
+    from parq_runtime.errors import ParqError
+
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise ParqError(f"{path}: no such pretrained backbone file")
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises several types for files it cannot read
+        raise ParqError(f"{path}: not a readable torch file ({type(e).__name__})") from None
+    if not isinstance(saved, dict) or saved.get("format") != PRETRAINED_FORMAT:
+        raise ParqError(f"{path}: not a pretrained backbone written by parq-train")
+    record = saved["pretraining"]
+    if list(record.get("image_size", ())) != list(config.image_size):
+        raise ParqError(f"{path}: pretrained at image size {record.get('image_size')}, "
+                        f"this model takes {list(config.image_size)}")
+    try:
+        backbone.load_state_dict(saved["backbone"])
+    except RuntimeError as e:
+        first = str(e).strip().splitlines()[1].strip() if "\n" in str(e) else str(e)
+        raise ParqError(f"{path}: made for another backbone ({first})") from None
+    return record

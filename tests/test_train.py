@@ -233,3 +233,37 @@ def test_training_snippets_take_views_the_configs_gap_apart(tmp_path):
             T_world_camera = np.stack([capture.frames[i].cam_to_world for i in window])
             expected = geometry.invert(geometry.snippet_frame(T_world_camera)) @ T_world_camera
             np.testing.assert_allclose(s.T_local_camera, expected, atol=1e-5)
+
+
+def test_a_saved_pretraining_gives_the_model_that_pretraining_again_gives(tmp_path, capsys):
+    """parq-train writes its pretrained backbone beside the checkpoint; --pretrained starts
+    from it and trains the same weights, bit for bit, as the run that pretrained; foreign
+    files are refused in one line naming them."""
+    from parq_export import checkpoint
+    from parq_train import cli
+
+    common = ["--seed", "0", "--data", str(tmp_path / "train"), "--scenes", "1", "--frames",
+              "8", "--jobs", "1", "--steps", "2", "--batch", "1", "--iterations", "1",
+              "--snapshot-every", "0"]
+    assert cli.main([str(tmp_path / "a.pt"), "--pretrain-steps", "2", *common]) == 0
+    saved = tmp_path / "a-pretrained.pt"
+    assert cli.main([str(tmp_path / "b.pt"), "--pretrained", str(saved), *common]) == 0
+    a, b = (checkpoint.load(tmp_path / f"{n}.pt") for n in "ab")
+    wa, wb = a.model().state_dict(), b.model().state_dict()
+    assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+    record = b.config.extra["training"]
+    assert record["pretrain_steps"] == 2 and record["pretraining"]["file"] == str(saved)
+    assert a.config.extra["training"]["pretraining"]["steps"] == 2
+
+    bare = tmp_path / "bare.pt"
+    torch.save({"conv1.weight": torch.zeros(1)}, bare)
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"not a torch file")
+    capsys.readouterr()
+    for path, message in ((bare, "not a pretrained backbone written by parq-train"),
+                          (garbage, "not a readable torch file"),
+                          (tmp_path / "missing.pt", "no such pretrained backbone file")):
+        assert cli.main([str(tmp_path / "c.pt"), "--pretrained", str(path), *common]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith(f"parq-train: error: {path}: {message}")
+        assert not (tmp_path / "c.pt").exists()
