@@ -56,7 +56,8 @@ def train_gap(args) -> None:
     folders = data.training_scenes(TRAIN, 1600, TRAIN_SEED, 30, config.image_size, jobs=2)
     snippets = data.load_scenes(folders, config)
     model = train.new_model(config, args.seed, snippets)
-    pretrain.load_backbone(args.pretrained, model.backbone, config)
+    pretrain.set_backbone(model.backbone, pretrain.read_backbone(args.pretrained, config)[0],
+                          args.pretrained)
     model, history = train.train(config, snippets, args.steps, args.seed,
                                  folds_of_class(config.classes), batch_size=4, iterations=4,
                                  lr=5e-4, log_every=250, model=model, form="cached")

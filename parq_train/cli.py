@@ -112,6 +112,7 @@ def run(args, argv) -> int:
         torch.set_num_threads(args.threads)
     form = "fused" if args.fused_attention else "cached"   # PARQ.forward's attention form
     config = demo_config(iterations=args.iterations, snippet_gap=args.gap)
+    saved = pretrain.read_backbone(args.pretrained, config) if args.pretrained else None
     start = time.perf_counter()
     log = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
     folders = data.training_scenes(args.data, args.scenes, TRAIN_SEED, args.frames,
@@ -120,9 +121,9 @@ def run(args, argv) -> int:
     snippets = data.load_scenes(folders, config, log=log)
     model = train.new_model(config, args.seed, snippets)
     pre_history, pre_record = [], {"steps": 0}
-    if args.pretrained:
-        pre_record = pretrain.load_backbone(args.pretrained, model.backbone, config)
-        pre_record = dict(pre_record, file=str(args.pretrained),
+    if saved:
+        pretrain.set_backbone(model.backbone, saved[0], args.pretrained)
+        pre_record = dict(saved[1], file=str(args.pretrained),
                           sha256=hashlib.sha256(args.pretrained.read_bytes()).hexdigest())
         log(f"backbone from {args.pretrained} ({pre_record['steps']} pretraining steps)")
     elif args.pretrain_steps:

@@ -113,7 +113,7 @@ PRETRAINED_FORMAT = "parq-train pretrained backbone"
 def save_backbone(path, backbone: nn.Module, record: dict) -> None:
     """Write a pretrained ResNet-FPN (trainable norms, as :func:`pretrain` leaves it) with
     ``record`` (how it was made: steps, seed, data, image size), for ``parq-train --pretrained``.
-    Tensors and plain values only, so :func:`load_backbone` reads it without unpickling code."""
+    Tensors and plain values only, so :func:`read_backbone` reads it without unpickling code."""
     path = pathlib.Path(path)
     tmp = path.with_name(path.name + ".tmp")
     torch.save({"format": PRETRAINED_FORMAT, "pretraining": record,
@@ -121,10 +121,10 @@ def save_backbone(path, backbone: nn.Module, record: dict) -> None:
     tmp.replace(path)
 
 
-def load_backbone(path, backbone: nn.Module, config) -> dict:
-    """Load a file of :func:`save_backbone` into ``backbone`` (in place); returns its record.
-    ParqError, naming the file, for a missing or foreign file, or one made for another
-    backbone or image size than ``config``'s."""
+def read_backbone(path, config) -> tuple:
+    """(state dict, record) of a file of :func:`save_backbone`, checked before any work is
+    spent: ParqError, naming the file, for a missing or foreign file or one pretrained at
+    another image size than ``config``'s.  Read with ``weights_only``: no code is unpickled."""
     from parq_runtime.errors import ParqError
 
     path = pathlib.Path(path)
@@ -140,9 +140,16 @@ def load_backbone(path, backbone: nn.Module, config) -> dict:
     if list(record.get("image_size", ())) != list(config.image_size):
         raise ParqError(f"{path}: pretrained at image size {record.get('image_size')}, "
                         f"this model takes {list(config.image_size)}")
+    return saved["backbone"], record
+
+
+def set_backbone(backbone: nn.Module, state: dict, path) -> None:
+    """Load ``state`` (from :func:`read_backbone` of ``path``) into ``backbone``; ParqError
+    naming the file when it was made for another ResNet depth or width."""
+    from parq_runtime.errors import ParqError
+
     try:
-        backbone.load_state_dict(saved["backbone"])
+        backbone.load_state_dict(state)
     except RuntimeError as e:
-        first = str(e).strip().splitlines()[1].strip() if "\n" in str(e) else str(e)
-        raise ParqError(f"{path}: made for another backbone ({first})") from None
-    return record
+        lines = [line.strip() for line in str(e).strip().splitlines() if line.strip()]
+        raise ParqError(f"{path}: made for another backbone ({lines[-1]})") from None

@@ -264,6 +264,25 @@ def test_a_saved_pretraining_gives_the_model_that_pretraining_again_gives(tmp_pa
                           (garbage, "not a readable torch file"),
                           (tmp_path / "missing.pt", "no such pretrained backbone file")):
         assert cli.main([str(tmp_path / "c.pt"), "--pretrained", str(path), *common]) == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert err[-1].startswith(f"parq-train: error: {path}: {message}")
+        # refused before any scene is loaded: the error is the only line
+        assert capsys.readouterr().err.startswith(f"parq-train: error: {path}: {message}")
         assert not (tmp_path / "c.pt").exists()
+
+
+def test_a_pretrained_backbone_for_another_resnet_is_refused_naming_the_file(tmp_path):
+    import pytest
+
+    from parq_runtime.errors import ParqError
+    from parq_train import pretrain
+
+    narrow, wide = (train.new_model(tiny_config(resnet_width=w), 0) for w in (8, 16))
+    path = tmp_path / "narrow-pretrained.pt"
+    pretrain.save_backbone(path, narrow.backbone, {"steps": 1, "image_size": [64, 48]})
+    state, record = pretrain.read_backbone(path, tiny_config(image_size=(64, 48)))
+    assert record["steps"] == 1
+    with pytest.raises(ParqError, match=r"narrow-pretrained.pt: made for another backbone"):
+        pretrain.set_backbone(wide.backbone, state, path)
+    with pytest.raises(ParqError, match=r"pretrained at image size \[64, 48\], this model "
+                                        r"takes \[64, 32\]"):
+        pretrain.read_backbone(path, tiny_config(image_size=(64, 32)))
+    pretrain.set_backbone(narrow.backbone, state, path)
