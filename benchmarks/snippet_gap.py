@@ -38,9 +38,8 @@ def pretrain(args) -> None:
                                   log_every=250)
     backbone_pretraining.save_backbone(
         args.output, model.backbone,
-        {"steps": args.steps, "seed": args.seed,
-         "data": {"seed": TRAIN_SEED, "scenes": len(folders), "frames": 30},
-         "image_size": list(config.image_size), "command": "benchmarks/snippet_gap.py"})
+        backbone_pretraining.record_of(config, args.steps, args.seed, TRAIN_SEED, folders, 30,
+                                       command="benchmarks/snippet_gap.py"))
 
 
 def train_gap(args) -> None:

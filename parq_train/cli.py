@@ -129,11 +129,9 @@ def run(args, argv) -> int:
     elif args.pretrain_steps:
         pre_history = pretrain.pretrain(model.backbone, config, folders, args.pretrain_steps,
                                         args.seed, log=log, log_every=500)
-        pre_record = {"steps": args.pretrain_steps, "seed": args.seed,
-                      "data": {"seed": TRAIN_SEED, "scenes": len(folders),
-                               "frames": args.frames},
-                      "image_size": list(config.image_size),
-                      "minutes": round((time.perf_counter() - start - generated) / 60, 1)}
+        pre_record = pretrain.record_of(
+            config, args.pretrain_steps, args.seed, TRAIN_SEED, folders, args.frames,
+            minutes=round((time.perf_counter() - start - generated) / 60, 1))
         path = args.output.with_name(f"{args.output.stem}-pretrained.pt")
         pretrain.save_backbone(path, model.backbone, pre_record)
         log(f"pretrained backbone {path}")

@@ -110,9 +110,18 @@ def pretrain(backbone: nn.Module, config, folders: list, steps: int, seed: int,
 PRETRAINED_FORMAT = "parq-train pretrained backbone"
 
 
+def record_of(config, steps: int, seed: int, data_seed: int, folders: list, frames: int,
+              **more) -> dict:
+    """What :func:`save_backbone` stores beside the weights: how the pretraining was made
+    (steps, seed, the scenes' generator seed, count and frames, the image size), plus ``more``."""
+    return {"steps": steps, "seed": seed,
+            "data": {"seed": data_seed, "scenes": len(folders), "frames": frames},
+            "image_size": list(config.image_size), **more}
+
+
 def save_backbone(path, backbone: nn.Module, record: dict) -> None:
     """Write a pretrained ResNet-FPN (trainable norms, as :func:`pretrain` leaves it) with
-    ``record`` (how it was made: steps, seed, data, image size), for ``parq-train --pretrained``.
+    ``record`` (:func:`record_of`), for ``parq-train --pretrained``.
     Tensors and plain values only, so :func:`read_backbone` reads it without unpickling code."""
     path = pathlib.Path(path)
     tmp = path.with_name(path.name + ".tmp")
