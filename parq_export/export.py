@@ -166,7 +166,7 @@ def build_card(model: PARQ, checkpoint: ckpt.Checkpoint, source: pathlib.Path,
         "query_order": [int(i) for i in c.query_order],
         "postprocess": {"score_threshold": c.score_threshold, "nms_iou": c.nms_iou,
                         "eval_region": list(c.eval_region), "fusion": c.fusion,
-                        "min_support": c.min_support},
+                        "min_support": c.min_support, "ray_ratio": c.ray_ratio},
         "snippets": {"gap": c.snippet_gap},
         "limits": {"max_views": MAX_VIEWS, "max_queries": MAX_QUERIES},
         "graphs": {

@@ -63,3 +63,10 @@ def score(text: str) -> float:
     if not 0.0 <= value < 1.0:
         raise argparse.ArgumentTypeError(f"{value} must be at least 0 and below 1")
     return value
+
+
+def ray_ratio(text: str) -> float:
+    value = number(text)
+    if not 1.0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"{value} must be at least 1 (1 is the mean fusion)")
+    return value

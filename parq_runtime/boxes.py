@@ -22,7 +22,9 @@ class Box:
 
     center (3,) metres; size (3,) full extents along the object's x, y (up), z axes;
     rotation (3, 3) = R_world_object; yaw radians about the up axis (see geometry.yaw);
-    corners (8, 3) in geometry.CORNER_SIGNS order; query: index of the query it came from."""
+    corners (8, 3) in geometry.CORNER_SIGNS order; query: index of the query it came from;
+    viewpoint (3,) world position of the camera it was seen from (its snippet frame's
+    origin, the middle view's camera), which ``ray`` fusion needs; None when unknown."""
 
     center: np.ndarray
     size: np.ndarray
@@ -33,6 +35,7 @@ class Box:
     score: float
     corners: np.ndarray
     query: int = -1
+    viewpoint: np.ndarray | None = None
 
     def to_json(self) -> dict:
         return {"class": self.class_name, "label": int(self.label),
@@ -104,5 +107,6 @@ def detections(last, T_world_local: np.ndarray, classes: list, score_threshold: 
         out.append(Box(center_world, size[q], R_world_object,
                        float(geometry.yaw(R_world_object, up)), int(labels[q]),
                        classes[labels[q]], float(scores[q]),
-                       geometry.box_corners(center_world, size[q], R_world_object), int(q)))
+                       geometry.box_corners(center_world, size[q], R_world_object), int(q),
+                       T_world_local[:3, 3].astype(np.float64)))
     return out

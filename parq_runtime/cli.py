@@ -7,7 +7,7 @@ import os
 import pathlib
 import sys
 
-from .arguments import OneLineParser, non_negative_float, positive_int, score
+from .arguments import OneLineParser, non_negative_float, positive_int, ray_ratio, score
 from .errors import ParqError
 
 DEFAULT_MODEL = pathlib.Path(__file__).resolve().parents[1] / "models" / "parq-demo"
@@ -58,7 +58,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--fusion", choices=MODES, default=None,
                    help="scene box from the snippets' matched detections: best = the highest "
                         "score (the authors' protocol), mean = its class and rotation with the "
-                        "score-weighted mean center and size (default: the model card's)")
+                        "score-weighted mean center and size, ray = as mean but each center "
+                        "trusted less along its viewing ray than across it (default: the "
+                        "model card's)")
+    p.add_argument("--ray-ratio", type=ray_ratio, default=None,
+                   help="for --fusion ray: how many times less a detection's depth along its "
+                        "viewing ray is trusted than its position across it (>= 1; 1 is "
+                        "mean; default: the model card's)")
     p.add_argument("--min-support", type=positive_int, default=None,
                    help="report a scene box only when at least this many snippets detect it "
                         "(default: the model card's; 1 for the authors' checkpoints)")
@@ -146,7 +152,8 @@ def run(args) -> int:
         gap=args.gap,
         score_threshold=args.score_threshold, region=not args.all_regions, form=args.form,
         keyframe_angle=args.keyframe_angle, keyframe_distance=args.keyframe_distance,
-        max_snippets=args.max_snippets, fusion=args.fusion, min_support=args.min_support)
+        max_snippets=args.max_snippets, fusion=args.fusion, min_support=args.min_support,
+        ray_ratio=args.ray_ratio)
     detector.reference_points(args.queries)  # argument check before the long part
     keys, snippets = scene.plan(capture, settings, detector.card)
     if not snippets:

@@ -100,6 +100,12 @@ class ModelCard:
         return int(self.raw["postprocess"].get("min_support", fusion.AUTHORS_MIN_SUPPORT))
 
     @property
+    def ray_ratio(self) -> float:
+        """Along-ray over across-ray variance for ``ray`` fusion (cards before it: the
+        default, parq_runtime.fusion.RAY_RATIO)."""
+        return float(self.raw["postprocess"].get("ray_ratio", fusion.RAY_RATIO))
+
+    @property
     def snippet_gap(self) -> int:
         """Keyframes between a snippet's views the model was trained with (1: consecutive, the
         authors'; cards written before it was recorded have 1)."""
@@ -177,6 +183,12 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
     if len(card.mean_sizes) != len(card.classes) + 1:
         raise ParqError(f"{path}: {len(card.mean_sizes)} mean sizes for {len(card.classes)} "
                         "classes")
+    post = raw["postprocess"] if isinstance(raw["postprocess"], dict) else {}
+    found = fusion.problems(post.get("fusion", fusion.AUTHORS_MODE),
+                            post.get("min_support", fusion.AUTHORS_MIN_SUPPORT),
+                            post.get("ray_ratio", fusion.RAY_RATIO))
+    if found:
+        raise ParqError(f"{path}: postprocess: {'; '.join(found)}")
     snippets = raw.get("snippets", {})
     gap = snippets.get("gap", 1) if isinstance(snippets, dict) else None
     if isinstance(gap, bool) or not isinstance(gap, int) or gap < 1:

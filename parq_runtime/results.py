@@ -49,6 +49,7 @@ def to_json(scene, settings, card, score_threshold: float) -> dict:
                      "gap": scene.gap,
                      "score_threshold": score_threshold, "region": settings.region,
                      "fusion": scene.fusion.mode, "min_support": scene.fusion.min_support,
+                     "ray_ratio": scene.fusion.ray_ratio,
                      "form": settings.form, "keyframe_angle_deg": settings.keyframe_angle,
                      "keyframe_distance_m": settings.keyframe_distance},
         "capture": {"path": str(scene.capture.path), "format": scene.capture.format,

@@ -30,6 +30,7 @@ class RunSettings:
     max_snippets: int | None = None
     fusion: str | None = None             # None: the model card's
     min_support: int | None = None        # None: the model card's
+    ray_ratio: float | None = None        # None: the model card's
 
 
 @dataclass
@@ -76,7 +77,8 @@ def run(detector, capture: Capture, settings: RunSettings, progress=None) -> Sce
                          fusion=SceneFusion(
                              up=capture.up,
                              mode=settings.fusion or detector.card.fusion,
-                             min_support=settings.min_support or detector.card.min_support))
+                             min_support=settings.min_support or detector.card.min_support,
+                             ray_ratio=settings.ray_ratio or detector.card.ray_ratio))
     # Overlapping windows share frames: their image features are computed once (streaming).
     # An LRU cache of span + gap - 1 frames never encodes one twice (simulated for 1-9 views,
     # gaps 1-6 and every stride below the span; tests/test_export.py runs five cases); with

@@ -1,6 +1,6 @@
 """Choose a trained model's post-processing on validation scenes: score threshold, the local
 evaluation region (which snippet detections are kept before scene fusion), and the scene
-fusion (mode and minimum support, parq_runtime.fusion).
+fusion (mode, minimum support and, for ``ray`` fusion, the ray ratio; parq_runtime.fusion).
 
 The authors fixed both for ScanNet (score > 0.8; centers with |x| < 1.5 m and z < 2 m in the
 snippet frame).  A model trained here scores on a different scale and sees different rooms,
@@ -19,6 +19,12 @@ ground-truth box of its class at IoU 0.25 and -0.5 for each that does not.  Runs
 queries start from the best ones, and the post-processing is chosen for that subset.
 
     python -m parq_train.tune work/demo.pt --data data/val -o work/demo-tuned.pt
+    python -m parq_train.tune models/parq-demo --data data/val -o work/parq-demo-tuned
+
+Given a checkpoint it writes a checkpoint (parq-export it next).  Given an exported model
+folder it writes a copy of the folder whose card (and the graphs' mirrored cards) hold the
+new choice; the folder's query order is kept, so the same weights give the same card either
+way when the folder's order is what tuning its checkpoint ranked.
 """
 from __future__ import annotations
 
@@ -32,19 +38,23 @@ import numpy as np
 from parq_runtime import evaluation, geometry, readers, scene
 from parq_runtime.arguments import OneLineParser, positive_int
 from parq_runtime.errors import ParqError
-from parq_runtime.fusion import AUTHORS_MIN_SUPPORT, AUTHORS_MODE, SceneFusion
+from parq_runtime.fusion import AUTHORS_MIN_SUPPORT, AUTHORS_MODE, RAY_RATIO, SceneFusion
 from parq_runtime.iou import iou_matrix
 
 THRESHOLDS = tuple(np.round(np.arange(0.3, 0.951, 0.05), 2))
 # (xmin, xmax, zmin, zmax) in the snippet frame; the first is the authors'.
 REGIONS = ((-1.5, 1.5, 0.0, 2.0), (-2.0, 2.0, 0.0, 3.0), (-2.5, 2.5, 0.0, 3.5),
            (-3.0, 3.0, 0.0, 4.5), (-10.0, 10.0, -10.0, 10.0))
-# (mode, min_support); the first is the authors'.  No support above 2: it would hide every
-# object that a short capture shows in fewer snippets (3 snippets are 9 keyframes).
-FUSIONS = ((AUTHORS_MODE, AUTHORS_MIN_SUPPORT), ("best", 2), ("mean", 1), ("mean", 2))
+# (mode, min_support, ray_ratio); the first is the authors'.  No support above 2: it would hide
+# every object that a short capture shows in fewer snippets (3 snippets are 9 keyframes).
+RAY_RATIOS = (3.0, 10.0, 30.0)
+FUSIONS = ((AUTHORS_MODE, AUTHORS_MIN_SUPPORT, RAY_RATIO), ("best", 2, RAY_RATIO),
+           ("mean", 1, RAY_RATIO), ("mean", 2, RAY_RATIO)) + tuple(
+    ("ray", support, ratio) for support in (1, 2) for ratio in RAY_RATIOS)
 RANKING_SCORE, RANKING_IOU, FALSE_WEIGHT = 0.7, 0.25, 0.5  # how query_utility counts
 AUTHORS = {"score_threshold": 0.8, "eval_region": list(REGIONS[0]), "fusion": FUSIONS[0][0],
            "min_support": FUSIONS[0][1]}
+CHOSEN = ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio")
 
 
 def run_once(detector, folders, iters: int, queries: int) -> list:
@@ -87,12 +97,14 @@ def rank_queries(utility: np.ndarray) -> list:
 
 
 def score(records: list, threshold: float, region, classes, fusion: str = AUTHORS_MODE,
-          min_support: int = AUTHORS_MIN_SUPPORT) -> dict:
-    """parq-eval metrics of the scenes fused with ``fusion`` and ``min_support`` when snippets
-    keep boxes scoring above ``threshold`` whose local centers lie in ``region``."""
+          min_support: int = AUTHORS_MIN_SUPPORT, ray_ratio: float = RAY_RATIO) -> dict:
+    """parq-eval metrics of the scenes fused with ``fusion``, ``min_support`` and ``ray_ratio``
+    when snippets keep boxes scoring above ``threshold`` whose local centers lie in
+    ``region``."""
     pairs = []
     for snippets, truth, up in records:
-        scene_boxes = SceneFusion(up=up, mode=fusion, min_support=min_support)
+        scene_boxes = SceneFusion(up=up, mode=fusion, min_support=min_support,
+                                  ray_ratio=ray_ratio)
         for n, boxes in enumerate(snippets):
             scene_boxes.add([b for b, c in boxes if b.score > threshold
                              and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]],
@@ -104,14 +116,14 @@ def score(records: list, threshold: float, region, classes, fusion: str = AUTHOR
 def select(records: list, classes, thresholds=THRESHOLDS, regions=REGIONS,
            fusions=FUSIONS) -> tuple:
     """(the best candidate's row, table of every candidate's settings and F1s).  A row holds
-    score_threshold, eval_region, fusion, min_support and f1@0.25, f1@0.5, f1@0.7."""
+    score_threshold, eval_region, fusion, min_support, ray_ratio and f1@0.25, f1@0.5, f1@0.7."""
     table = []
-    for mode, support in fusions:
+    for mode, support, ratio in fusions:
         for region in regions:
             for t in thresholds:
-                m = score(records, float(t), region, classes, mode, support)
+                m = score(records, float(t), region, classes, mode, support, ratio)
                 table.append({"score_threshold": float(t), "eval_region": list(region),
-                              "fusion": mode, "min_support": support,
+                              "fusion": mode, "min_support": support, "ray_ratio": ratio,
                               **{f"f1@{k}": round(m[k]["f1"], 4) for k in m}})
     # max() keeps the first of equals: the authors' fusion wins ties
     best = max(table, key=lambda r: (r["f1@0.25"] + r["f1@0.5"], r["f1@0.5"]))
@@ -120,7 +132,8 @@ def select(records: list, classes, thresholds=THRESHOLDS, regions=REGIONS,
 
 def main(argv=None) -> int:
     p = OneLineParser(prog="python -m parq_train.tune", description=__doc__.splitlines()[0])
-    p.add_argument("checkpoint", type=pathlib.Path, help="trained checkpoint (parq-train)")
+    p.add_argument("checkpoint", type=pathlib.Path,
+                   help="trained checkpoint (parq-train), or a model folder (parq-export)")
     p.add_argument("--data", type=pathlib.Path, default=pathlib.Path("data/val"),
                    help="validation scenes (default data/val: parq-synth seed 2000)")
     p.add_argument("--scenes", type=positive_int, default=40,
@@ -130,7 +143,8 @@ def main(argv=None) -> int:
     p.add_argument("--queries", type=positive_int, default=32,
                    help="queries (default 32, parq-run's)")
     p.add_argument("-o", "--output", type=pathlib.Path, required=True,
-                   help="checkpoint to write with the chosen post-processing")
+                   help="checkpoint to write with the chosen post-processing (for a model "
+                        "folder: the new model folder, which must not exist)")
     args = p.parse_args(argv)
     try:
         return run(args)
@@ -139,14 +153,56 @@ def main(argv=None) -> int:
         return 2
 
 
+def record_of(args, folders, best, table, ranking) -> dict:
+    """What the card's ``extra.postprocess_tuning`` says about a tuning run."""
+    authors = next(r for r in table if all(r[k] == v for k, v in AUTHORS.items()))
+    seeds = sorted({json.loads((f / "scene.json").read_text()).get("seed") for f in folders
+                    if (f / "scene.json").exists()})
+    return {"data": str(args.data), "seeds": seeds, "scenes": len(folders),
+            "iters": args.iters,
+            "queries": args.queries, "criterion": "max F1@0.25 + F1@0.5",
+            "chosen": best, "authors_settings": authors, "query_ranking": ranking}
+
+
 def run(args) -> int:
+    folders = sorted(p.parent for p in args.data.glob("*/boxes.json"))[:args.scenes]
+    if not folders:
+        raise ParqError(f"{args.data}: no generated scenes (parq-synth)")
+    if args.checkpoint.is_dir():
+        return run_folder(args, folders)
+    return run_checkpoint(args, folders)
+
+
+def run_folder(args, folders) -> int:
+    """Tune an exported model folder; writes a copy with the new card (module doc)."""
+    from parq_export import card_rewrite
+    from parq_runtime import Detector
+
+    detector = Detector(args.checkpoint)
+    if args.output.exists():
+        raise ParqError(f"{args.output}: already exists (a model folder is written new)")
+    records = run_once(detector, folders, args.iters, args.queries)
+    best, table = select(records, detector.classes)
+    previous = detector.card.raw.get("extra", {}).get("postprocess_tuning") or {}
+    ranking = previous.get("query_ranking")
+    if ranking:
+        ranking = dict(ranking, kept_from=str(args.checkpoint))
+    record = dict(record_of(args, folders, best, table, ranking),
+                  tuned=f"model folder {args.checkpoint}")
+
+    def update(card):
+        card["postprocess"].update({k: best[k] for k in CHOSEN})
+        card["extra"] = dict(card.get("extra", {}), postprocess_tuning=record)
+    card_rewrite.rewrite(args.checkpoint, args.output, update)
+    print(json.dumps(record, indent=1))
+    return 0
+
+
+def run_checkpoint(args, folders) -> int:
     from parq_export import checkpoint
     from parq_export.export import export
     from parq_runtime import Detector
 
-    folders = sorted(p.parent for p in args.data.glob("*/boxes.json"))[:args.scenes]
-    if not folders:
-        raise ParqError(f"{args.data}: no generated scenes (parq-synth)")
     loaded = checkpoint.load(args.checkpoint)
     learned = loaded.config.num_queries
     ranking = None
@@ -169,18 +225,13 @@ def run(args) -> int:
         records = run_once(detector, folders, args.iters, args.queries)
         classes = detector.classes
     best, table = select(records, classes)
-    authors = next(r for r in table if all(r[k] == v for k, v in AUTHORS.items()))
-    seeds = sorted({json.loads((f / "scene.json").read_text()).get("seed") for f in folders
-                    if (f / "scene.json").exists()})
-    record = {"data": str(args.data), "seeds": seeds, "scenes": len(folders),
-              "iters": args.iters,
-              "queries": args.queries, "criterion": "max F1@0.25 + F1@0.5",
-              "chosen": best, "authors_settings": authors, "query_ranking": ranking}
+    record = record_of(args, folders, best, table, ranking)
     model = loaded.model()
     extra = dict(loaded.config.extra, postprocess_tuning=record)
     model.config = loaded.config.replace(
         score_threshold=best["score_threshold"], eval_region=tuple(best["eval_region"]),
-        fusion=best["fusion"], min_support=best["min_support"], extra=extra,
+        fusion=best["fusion"], min_support=best["min_support"], ray_ratio=best["ray_ratio"],
+        extra=extra,
         query_order=tuple(ranking["order"]) if ranking else loaded.config.query_order)
     metadata = {"tuning_table": table}
     checkpoint.save(args.output, model, metadata)

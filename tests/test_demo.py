@@ -26,8 +26,8 @@ def test_demo_folder_is_small_and_its_card_says_how_it_was_made():
     assert training["seed"] == 0 and training["data"]["seed"] == 1000
     assert sum(training["minutes"].values()) <= 90
     tuning = card["extra"]["postprocess_tuning"]
-    assert tuning["chosen"]["score_threshold"] == card["postprocess"]["score_threshold"]
-    assert tuning["chosen"]["eval_region"] == card["postprocess"]["eval_region"]
+    for key in ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio"):
+        assert tuning["chosen"][key] == card["postprocess"][key], key
     for role in ("backbone", "layer"):
         path = DEMO / card["graphs"][role]["file"]
         assert hashlib.sha256(path.read_bytes()).hexdigest() == card["graphs"][role]["sha256"]
@@ -59,3 +59,10 @@ def test_demo_detects_objects_of_its_sample_scene():
     assert (centers[:, :2] < corners[:, :2].max(0) + 1.0).all()
     sizes = np.array([b.size for b in result.fusion.boxes])
     assert ((sizes > 0.05) & (sizes < 4.0)).all()
+    # every detection knows the camera it was seen from: its snippet frame's origin, the
+    # middle view's camera (what ray fusion triangulates with)
+    for s in result.snippets:
+        middle = next(f for f in capture.frames if f.name == s.frames[1])
+        for b in s.boxes:
+            np.testing.assert_allclose(b.viewpoint, s.T_world_local[:3, 3])
+            np.testing.assert_allclose(b.viewpoint, middle.cam_to_world[:3, 3])

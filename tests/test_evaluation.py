@@ -1,4 +1,5 @@
 """IoU, scene fusion and the F1 evaluator on hand-made cases with known answers."""
+import dataclasses
 import json
 import subprocess
 import sys
@@ -113,6 +114,53 @@ def test_mean_fusion_averages_the_best_class_weighted_by_score():
     best.add([box([0.0, 0, 0.5], score=0.6)], 0)
     best.add([box([0.2, 0, 0.5], score=0.9)], 1)
     np.testing.assert_allclose(best.boxes[0].center, [0.2, 0, 0.5])
+
+
+def seen_from(b, viewpoint):
+    return dataclasses.replace(b, viewpoint=np.asarray(viewpoint, float))
+
+
+def test_ray_fusion_pins_the_depth_that_each_view_gets_wrong():
+    """An object at (2, 2, 0.5) seen along +x from (0, 2, 0.5) and along +y from (2, 0, 0.5),
+    each detection 0.3 m too deep along its own ray.  The mean is 0.21 m off; ray fusion with
+    ratio k solves ((I - 0.9 xx^T) + (I - 0.9 yy^T)) c = ..., i.e. x = (2.3 / k + 2) / (1 + 1/k)
+    and y = (2 + 1.7 / k) / (1 + 1/k): 0.039 m off at k = 10, exact as k grows."""
+    truth = np.array([2.0, 2.0, 0.5])
+    a = seen_from(box(truth + [0.3, 0, 0], score=0.9), [0, 2, 0.5])
+    b = seen_from(box(truth - [0, 0.3, 0], score=0.9), [2, 0, 0.5])
+    errors = {}
+    for mode, ratio in (("mean", 10.0), ("ray", 1.0), ("ray", 10.0), ("ray", 1e6)):
+        fusion = SceneFusion(mode=mode, ray_ratio=ratio)
+        fusion.add([a], 0)
+        fusion.add([b], 1)
+        (fused,) = fusion.boxes
+        errors[mode, ratio] = np.linalg.norm(fused.center - truth)
+        np.testing.assert_allclose(fused.corners, geometry.box_corners(
+            fused.center, fused.size, fused.rotation))
+    k = 10.0
+    expected = [(2.3 / k + 2) / (1 + 1 / k), (2 + 1.7 / k) / (1 + 1 / k), 0.5]
+    fusion = SceneFusion(mode="ray", ray_ratio=k)
+    fusion.add([a], 0)
+    fusion.add([b], 1)
+    np.testing.assert_allclose(fusion.boxes[0].center, expected, atol=1e-12)
+    assert errors["mean", 10.0] == pytest.approx(0.3 / np.sqrt(2))
+    assert errors["ray", 1.0] == pytest.approx(errors["mean", 10.0])    # ratio 1 is the mean
+    assert errors["ray", 10.0] < 0.04 and errors["ray", 1e6] < 1e-5
+
+
+def test_ray_fusion_without_viewpoints_is_the_mean_and_bad_ratios_are_refused():
+    from parq_runtime.errors import ParqError
+
+    fused = {}
+    for mode in ("mean", "ray"):
+        fusion = SceneFusion(mode=mode)
+        fusion.add([box([0.0, 0, 0.5], score=0.6)], 0)            # no viewpoint: isotropic
+        fusion.add([box([0.2, 0.1, 0.5], score=0.9)], 1)
+        fused[mode] = fusion.boxes[0].center
+    np.testing.assert_allclose(fused["ray"], fused["mean"], atol=1e-12)
+    for ratio in (0.5, float("inf"), float("nan"), "10", True):
+        with pytest.raises(ParqError, match="ray_ratio"):
+            SceneFusion(mode="ray", ray_ratio=ratio)
 
 
 def test_min_support_counts_snippets_not_detections():

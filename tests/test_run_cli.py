@@ -136,7 +136,9 @@ def test_bad_arguments(tiny_model, scannet_folder, tmp_path):
                          (["--queries", 5000], "queries = 5000"),
                          (["--views", 0], "--views"), (["--form", "fast"], "--form"),
                          (["--threads", 0], "--threads"), (["--fusion", "avg"], "--fusion"),
-                         (["--min-support", 0], "--min-support")):
+                         (["--min-support", 0], "--min-support"),
+                         (["--ray-ratio", 0.5], "--ray-ratio"),
+                         (["--ray-ratio", "inf"], "--ray-ratio")):
         out = tmp_path / "x.json"
         _one_line_error(*run_cli(scannet_folder, "--model", tiny_model, "-o", out, *args),
                         needle)
@@ -165,6 +167,11 @@ def test_bad_model_folders(tiny_model, scannet_folder, tmp_path):
     card["format_version"] = 99
     (old / "model.json").write_text(json.dumps(card))
     _one_line_error(*run_cli(scannet_folder, "--model", old), "format 99", "export")
+    card["format_version"] = json.loads((tiny_model / "model.json").read_text())[
+        "format_version"]
+    card["postprocess"].update(fusion="ray", ray_ratio=0.1)
+    (old / "model.json").write_text(json.dumps(card))
+    _one_line_error(*run_cli(scannet_folder, "--model", old), "model.json", "ray_ratio")
 
 
 def test_bad_captures(tiny_model, tmp_path):

@@ -1,7 +1,9 @@
 """The training objective and loop."""
+import json
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from parq_export import verify
@@ -286,3 +288,60 @@ def test_a_pretrained_backbone_for_another_resnet_is_refused_naming_the_file(tmp
                                         r"takes \[64, 32\]"):
         pretrain.read_backbone(path, tiny_config(image_size=(64, 32)))
     pretrain.set_backbone(narrow.backbone, state, path)
+
+
+def test_rewriting_a_card_changes_the_card_everywhere_and_nothing_else(tiny_model, tmp_path):
+    """card_rewrite: model.json and both graphs' mirrored cards get the change, the graphs'
+    nodes and weights are byte-identical, the new hashes hold; bad sources and existing
+    outputs are refused with nothing written."""
+    import onnx
+
+    from parq_export import card_rewrite
+    from parq_runtime import model_card
+    from parq_runtime.errors import ParqError
+
+    def update(card):
+        card["postprocess"].update(fusion="ray", min_support=2, ray_ratio=3.0)
+
+    out = tmp_path / "retuned"
+    card = card_rewrite.rewrite(tiny_model, out, update)
+    loaded = model_card.load(out)
+    assert (loaded.fusion, loaded.min_support, loaded.ray_ratio) == ("ray", 2, 3.0)
+    assert card == json.loads((out / "model.json").read_text())
+    for role in ("backbone", "layer"):
+        name = card["graphs"][role]["file"]
+        before, after = onnx.load(str(tiny_model / name)), onnx.load(str(out / name))
+        assert before.graph.SerializeToString() == after.graph.SerializeToString()
+        mirrored = {p.key: json.loads(p.value) for p in after.metadata_props
+                    if p.key == model_card.METADATA_KEY}[model_card.METADATA_KEY]
+        assert mirrored["postprocess"] == card["postprocess"]
+    with pytest.raises(ParqError, match="already exists"):
+        card_rewrite.rewrite(tiny_model, out, update)
+    with pytest.raises(ParqError, match="not found"):
+        card_rewrite.rewrite(tmp_path / "nope", tmp_path / "other", update)
+
+    def breaks(card):
+        card["postprocess"]["ray_ratio"] = 0.0
+    with pytest.raises(ParqError, match="ray_ratio"):
+        card_rewrite.rewrite(tiny_model, tmp_path / "broken", breaks)
+    assert not (tmp_path / "broken").exists()
+
+
+def test_tune_a_model_folder_writes_a_new_folder_with_the_choice(tiny_model, tmp_path):
+    """python -m parq_train.tune FOLDER: the chosen row is in the new card, the query order
+    kept; an existing output is refused before the detector runs."""
+    import parq_synth
+    from parq_runtime import model_card
+    from parq_train import tune
+
+    parq_synth.generate(tmp_path / "val", 2, 2000, frames=8, size=(64, 48))
+    out = tmp_path / "tuned"
+    assert tune.main([str(tiny_model), "--data", str(tmp_path / "val"), "-o", str(out),
+                      "--queries", "8"]) == 0
+    card = model_card.load(out)
+    chosen = card.raw["extra"]["postprocess_tuning"]["chosen"]
+    for key in tune.CHOSEN:
+        assert card.raw["postprocess"][key] == chosen[key]
+    assert card.raw["query_order"] == json.loads((tiny_model / "model.json").read_text())[
+        "query_order"]
+    assert tune.main([str(tiny_model), "--data", str(tmp_path / "val"), "-o", str(out)]) == 2
