@@ -8,6 +8,11 @@ snippet (reading its frames included, after one warm-up pass over the scenes).  
 results/tradeoff.{md,csv,json,png}.
 
     python benchmarks/tradeoff.py [--model models/parq-demo] [--scenes 40]
+    python benchmarks/tradeoff.py --latency-from benchmarks/results/tradeoff-mean.json
+
+``--latency-from`` re-measures accuracy only and reports the latency column of an earlier
+run of the same graphs (its machine named in the table): for a post-processing change on a
+machine too busy or too different to time on.
 """
 from __future__ import annotations
 
@@ -79,7 +84,11 @@ def main():
                    help="onnxruntime threads (default: its own choice)")
     p.add_argument("--out", default=str(common.RESULTS / "tradeoff"),
                    help="output stem: .md, .csv, .json, .png (default results/tradeoff)")
+    p.add_argument("--latency-from", type=pathlib.Path, default=None,
+                   help="an earlier run's .json: report its latencies (same graphs) instead "
+                        "of timing here")
     args = p.parse_args()
+    earlier = json.loads(args.latency_from.read_text()) if args.latency_from else None
 
     from parq_runtime import Detector
 
@@ -99,24 +108,31 @@ def main():
                 row[f"f1@{t}"] = round(metrics[t]["f1"], 4)
                 row[f"precision@{t}"] = round(metrics[t]["precision"], 4)
                 row[f"recall@{t}"] = round(metrics[t]["recall"], 4)
+            if earlier is not None:
+                row["seconds_per_snippet"] = next(
+                    r["seconds_per_snippet"] for r in earlier["rows"]
+                    if (r["iterations"], r["queries"]) == (iters, queries))
             rows.append(row)
             print(json.dumps(row), file=sys.stderr, flush=True)
-    write(pathlib.Path(args.out), rows, args, learned)
+    write(pathlib.Path(args.out), rows, args, learned, earlier)
 
 
-def write(out, rows, args, learned):
+def write(out, rows, args, learned, earlier=None):
     out.parent.mkdir(parents=True, exist_ok=True)
     with open(out.with_suffix(".csv"), "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
     machine = common.machine()
-    out.with_suffix(".json").write_text(json.dumps({"machine": machine, "scenes": args.scenes,
-                                                    "seed": HELD_OUT_SEED, "rows": rows},
-                                                   indent=1))
+    timed = earlier["machine"] if earlier else machine
+    record = {"machine": machine, "scenes": args.scenes, "seed": HELD_OUT_SEED, "rows": rows}
+    if earlier:
+        record["latency_from"] = {"file": str(args.latency_from), "machine": timed}
+    out.with_suffix(".json").write_text(json.dumps(record, indent=1))
+    source = f" (from {args.latency_from.name}, not timed in this run)" if earlier else ""
     lines = [f"{args.scenes} held-out scenes (parq-synth seed {HELD_OUT_SEED}, {args.size}), "
              f"3-view snippets, scene-level F1 (parq-eval); latency = median seconds per "
-             f"snippet on {machine['cpu']}, {machine['cores']} cores.", "",
+             f"snippet on {timed['cpu']}, {timed['cores']} cores{source}.", "",
              "| iterations | queries | F1@0.25 | F1@0.5 | F1@0.7 | ms / snippet |",
              "|---:|---:|---:|---:|---:|---:|"]
     for r in rows:

@@ -9,5 +9,8 @@ cd "$(dirname "$0")/../.."
 parq-synth data/val --scenes 40 --seed 2000 --frames 60 --width 160 --height 120 --jobs 2 --quiet
 # generates its 1600 training scenes of 30 frames into data/train1600, then trains
 parq-train work/demo.pt --seed 0 --data data/train1600 --scenes 1600 --frames 30 --jobs 2
+# chooses the post-processing (ray fusion, support 2, ratio 10 for these weights); the shipped
+# card was made by the same search on the exported folder (python -m parq_train.tune
+# models/parq-demo ...), which keeps the folder's query ranking: see README.md
 python -m parq_train.tune work/demo.pt --data data/val -o work/demo-tuned.pt
 parq-export work/demo-tuned.pt -o work/parq-demo --force
