@@ -57,10 +57,11 @@ AUTHORS = {"score_threshold": 0.8, "eval_region": list(REGIONS[0]), "fusion": FU
 CHOSEN = ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio")
 
 
-def run_once(detector, folders, iters: int, queries: int) -> list:
-    """Per scene: (snippets as [(T_world_local, boxes with their local centers)], truth, up)."""
+def run_once(detector, folders, iters: int, queries: int, stride: int | None = None) -> list:
+    """Per scene: (snippets as [(T_world_local, boxes with their local centers)], truth, up);
+    ``stride``: keyframes between snippet starts (None: parq-run's default, no overlap)."""
     settings = scene.RunSettings(iters=iters, queries=queries, score_threshold=0.0,
-                                 region=False)
+                                 region=False, stride=stride)
     out = []
     for folder in folders:
         capture = readers.open_capture(folder)
