@@ -42,9 +42,7 @@ def _score(candidate) -> dict:
     from parq_train import tune
 
     threshold, support, region, ratio = candidate
-    m = tune.score(_records, threshold, region, _classes, "ray", support, ratio)
-    return {"score_threshold": threshold, "min_support": support, "eval_region": list(region),
-            "ray_ratio": ratio, **{f"f1@{k}": round(m[k]["f1"], 4) for k in m}}
+    return tune.candidate(_records, _classes, threshold, region, "ray", support, ratio)
 
 
 def grid(records, classes, candidates, jobs: int) -> list:
@@ -82,7 +80,7 @@ def main() -> None:
         held_records = tune.run_once(det, held, args.iters, args.queries, stride)
         seconds = time.perf_counter() - start
         table = grid(val_records, det.classes, candidates, args.jobs)
-        best = max(table, key=lambda r: (r["f1@0.25"] + r["f1@0.5"], r["f1@0.5"]))
+        best = tune.best_of(table)
         m = tune.score(held_records, best["score_threshold"], best["eval_region"], det.classes,
                        "ray", best["min_support"], best["ray_ratio"])
         row = {"stride": stride,

@@ -118,17 +118,24 @@ def select(records: list, classes, thresholds=THRESHOLDS, regions=REGIONS,
            fusions=FUSIONS) -> tuple:
     """(the best candidate's row, table of every candidate's settings and F1s).  A row holds
     score_threshold, eval_region, fusion, min_support, ray_ratio and f1@0.25, f1@0.5, f1@0.7."""
-    table = []
-    for mode, support, ratio in fusions:
-        for region in regions:
-            for t in thresholds:
-                m = score(records, float(t), region, classes, mode, support, ratio)
-                table.append({"score_threshold": float(t), "eval_region": list(region),
-                              "fusion": mode, "min_support": support, "ray_ratio": ratio,
-                              **{f"f1@{k}": round(m[k]["f1"], 4) for k in m}})
-    # max() keeps the first of equals: the authors' fusion wins ties
-    best = max(table, key=lambda r: (r["f1@0.25"] + r["f1@0.5"], r["f1@0.5"]))
-    return best, table
+    table = [candidate(records, classes, float(t), region, mode, support, ratio)
+             for mode, support, ratio in fusions for region in regions for t in thresholds]
+    return best_of(table), table
+
+
+def candidate(records: list, classes, threshold: float, region, fusion: str, min_support: int,
+              ray_ratio: float) -> dict:
+    """One row of :func:`select`'s table: the settings and the F1s they give on ``records``."""
+    m = score(records, threshold, region, classes, fusion, min_support, ray_ratio)
+    return {"score_threshold": threshold, "eval_region": list(region), "fusion": fusion,
+            "min_support": min_support, "ray_ratio": ray_ratio,
+            **{f"f1@{k}": round(m[k]["f1"], 4) for k in m}}
+
+
+def best_of(table: list) -> dict:
+    """The row with the highest F1@0.25 + F1@0.5 (then F1@0.5); max() keeps the first of
+    equals, so in :func:`select`'s table the authors' fusion wins ties."""
+    return max(table, key=lambda r: (r["f1@0.25"] + r["f1@0.5"], r["f1@0.5"]))
 
 
 def main(argv=None) -> int:
