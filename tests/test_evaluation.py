@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 
+import cv2
 import numpy as np
 import pytest
 
@@ -11,7 +12,7 @@ from parq_runtime import geometry
 from parq_runtime.boxes import Box
 from parq_runtime.evaluation import evaluate, match_counts
 from parq_runtime.fusion import SceneFusion
-from parq_runtime.iou import iou_upright
+from parq_runtime.iou import footprint, iou_matrix, iou_upright, vertical_range
 
 Y_UP = (0.0, 1.0, 0.0)
 
@@ -25,6 +26,33 @@ def box(center, size=(1, 1, 1), yaw=0.0, name="chair", score=0.9, up=geometry.UP
     return Box(np.asarray(center, float), np.asarray(size, float), R, yaw, labels[name], name,
                score, geometry.box_corners(np.asarray(center, float), np.asarray(size, float), R))
 
+
+
+def test_iou_matrix_is_the_pairwise_iou_whatever_the_company():
+    """iou_matrix screens pairs (height overlap, footprint distance) for many boxes at once:
+    each entry must be what the pair alone gives, including pairs that touch, are far apart or
+    sit one above the other, and the matrix must be symmetric with ones on its diagonal."""
+    rng = np.random.default_rng(0)
+    boxes = [box(rng.uniform(-2, 2, 3), size=rng.uniform(0.2, 1.5, 3),
+                 yaw=rng.uniform(-np.pi, np.pi)) for _ in range(25)]
+    boxes.append(box(boxes[0].center + [0, 0, boxes[0].size[1]], size=boxes[0].size))  # on top
+    m = iou_matrix(boxes, boxes)
+    def brute_force(a, b):   # every pair through the polygon intersection, no screening
+        (lo_a, hi_a), (lo_b, hi_b) = vertical_range(a.center, a.size), \
+            vertical_range(b.center, b.size)
+        area, _ = cv2.intersectConvexConvex(
+            footprint(a.center, a.size, a.yaw).astype(np.float32),
+            footprint(b.center, b.size, b.yaw).astype(np.float32))
+        inter = max(area, 0.0) * max(min(hi_a, hi_b) - max(lo_a, lo_b), 0.0)
+        return inter / (np.prod(a.size) + np.prod(b.size) - inter)
+
+    np.testing.assert_allclose(m, [[brute_force(a, b) for b in boxes] for a in boxes],
+                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(m, m.T, atol=1e-6)
+    np.testing.assert_allclose(np.diag(m), 1.0, atol=1e-6)
+    assert m[0, -1] == 0.0 and 0 < (m > 0).sum() - len(boxes) < len(boxes) ** 2 - len(boxes)
+    assert iou_matrix([], boxes).shape == (0, len(boxes))
+    assert iou_matrix(boxes, []).shape == (len(boxes), 0)
 
 @pytest.mark.parametrize("up", [geometry.UP_Z, Y_UP])
 def test_iou_known_values(up):
