@@ -83,6 +83,11 @@ def parser() -> argparse.ArgumentParser:
                         "another rounding order, 0.185 s a step at 2 threads against 0.205; "
                         "off by default so that the default command rebuilds the shipped demo "
                         "bit for bit")
+    p.add_argument("--bf16", action="store_true",
+                   help="train (not pretrain) under bfloat16 autocast: on Xeons with AMX a "
+                        "step took 0.41 s at --batch 8 against 0.54 in float32 (0.23 against "
+                        "0.28 at batch 4); without AMX bfloat16 is emulated and slower. Off by "
+                        "default: the default command rebuilds the shipped demo bit for bit")
     p.add_argument("--snapshot-every", type=non_negative_int, default=2000,
                    help="also write OUTPUT's stem + '-stepN.pt' every N training steps "
                         "(0: never; default 2000)")
@@ -146,7 +151,7 @@ def run(args, argv) -> int:
                                  iterations=args.iterations, lr=args.lr, log=log,
                                  log_every=250, model=model, snapshot=snapshot,
                                  snapshot_every=args.snapshot_every,
-                                 backbone_lr=args.backbone_lr, form=form)
+                                 backbone_lr=args.backbone_lr, form=form, bf16=args.bf16)
     trained = time.perf_counter() - start - generated - pretrained
     record = {"command": "parq-train " + " ".join(argv), "seed": args.seed,
               "data": {"generator": "parq-synth", "seed": TRAIN_SEED, "scenes": len(folders),
@@ -157,6 +162,7 @@ def run(args, argv) -> int:
               "iterations": args.iterations, "gap": args.gap, "lr": args.lr,
               "backbone_lr": args.backbone_lr,
               "attention": form,
+              "precision": "bfloat16 autocast" if args.bf16 else "float32",
               "threads": torch.get_num_threads(),
               "minutes": {"generate": round(generated / 60, 1),
                           "pretrain": round(pretrained / 60, 1), "train": round(trained / 60, 1)},

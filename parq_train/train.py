@@ -99,7 +99,7 @@ def new_model(config, seed: int, snippets=None) -> PARQ:
 def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_size: int = 4,
           lr: float = 4e-4, iterations: int = 4, log=print, log_every: int = 50,
           model: PARQ | None = None, snapshot=None, snapshot_every: int = 0,
-          backbone_lr: float = 1.0, form: str = "cached") -> tuple:
+          backbone_lr: float = 1.0, form: str = "cached", bf16: bool = False) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
 
@@ -108,7 +108,9 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     checkpoints behind it.  ``backbone_lr`` scales the learning rate of the ResNet-FPN (the
     pretrained part) against the rest.  ``form`` is the attention form of PARQ.forward: the
     default ``cached`` is what trained the shipped demo; ``fused`` computes the same in another
-    rounding order, faster."""
+    rounding order, faster.  ``bf16`` runs the forward pass under CPU autocast to bfloat16
+    (products and convolutions in bfloat16, weights, optimiser and loss in float32): on CPUs
+    with AMX it is faster (see ``parq-train --bf16``); elsewhere it is emulated and slower."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     if model is None:
@@ -135,7 +137,11 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
             group["lr"] = group["scale"] * learning_rate(step, steps, lr,
                                                          warmup=min(500, steps // 10))
         images, camera, T_local_camera, targets = to_batch(batch, rng)
-        outputs = model(images, camera, T_local_camera, iterations=iterations, form=form)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            outputs = model(images, camera, T_local_camera, iterations=iterations, form=form)
+        if bf16:
+            outputs = [{k: v.float() if v.is_floating_point() else v for k, v in out.items()}
+                       for out in outputs]
         loss, parts = total_loss(outputs, targets, folds, len(config.classes))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()

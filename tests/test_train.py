@@ -144,6 +144,25 @@ def test_training_is_deterministic_for_a_seed():
     assert not all(torch.equal(a[k], c[k]) for k in a)
 
 
+def test_bfloat16_autocast_training_learns_and_keeps_float32_weights():
+    """parq-train --bf16: the forward pass runs in bfloat16 (so the weights come out
+    different from float32 training), the loss still falls as in float32, and the model
+    that comes out is float32 throughout, ready for export."""
+    config = tiny_config(num_queries=16)
+    snippets = tiny_snippets(config)
+    kwargs = dict(seed=0, folds_of_class=[1] * 9, batch_size=2, iterations=2, lr=2e-3,
+                  log=lambda *_: None, log_every=10)
+    model, history = train.train(config, snippets, steps=60, bf16=True, **kwargs)
+    first, last = history[0]["total"], history[-1]["total"]
+    assert last < 0.6 * first, history
+    state = model.state_dict()
+    assert all(t.dtype == torch.float32 for t in state.values() if t.is_floating_point())
+    short_bf16, _ = train.train(config, snippets, steps=2, bf16=True, **kwargs)
+    short_fp32, _ = train.train(config, snippets, steps=2, **kwargs)
+    a, b = short_bf16.state_dict(), short_fp32.state_dict()
+    assert not all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_fused_attention_form_matches_cached_in_outputs_and_gradients():
     """Training uses torch's fused attention kernel (form "fused"); it must compute what the
     cached form (checked against the authors' arithmetic in test_golden) computes."""
