@@ -37,7 +37,8 @@ def _vertical_range(center, size, up_unit) -> tuple:
 
 def _prepared(boxes, up) -> tuple:
     """Per box, once: vertical ranges (n,), (n,), footprints (n, 4, 2) float32 as
-    ``intersectConvexConvex`` takes them, their centres (n, 2), reach radii (n,), volumes (n,)."""
+    ``intersectConvexConvex`` takes them, their centres (n, 2), footprint diagonals (n,),
+    volumes (n,)."""
     up_unit = geometry.unit(np.asarray(up, dtype=np.float64))
     e1, e2 = geometry.horizontal_basis(up)
     ranges = [_vertical_range(b.center, b.size, up_unit) for b in boxes]
@@ -46,10 +47,10 @@ def _prepared(boxes, up) -> tuple:
     lo = np.array([r[0] for r in ranges], dtype=np.float64).reshape(n)
     hi = np.array([r[1] for r in ranges], dtype=np.float64).reshape(n)
     middle = np.array([p.mean(0) for p in prints], dtype=np.float64).reshape(n, 2)
-    radius = np.array([np.hypot(b.size[0], b.size[2]) for b in boxes],
-                      dtype=np.float64).reshape(n)
+    diagonal = np.array([np.hypot(b.size[0], b.size[2]) for b in boxes],
+                        dtype=np.float64).reshape(n)
     volume = np.array([float(np.prod(b.size)) for b in boxes], dtype=np.float64).reshape(n)
-    return lo, hi, [p.astype(np.float32) for p in prints], middle, radius, volume
+    return lo, hi, [p.astype(np.float32) for p in prints], middle, diagonal, volume
 
 
 def iou_upright(a, b, up=geometry.UP_Z) -> float:
@@ -71,11 +72,11 @@ def iou_matrix(boxes_a: list, boxes_b: list, up=geometry.UP_Z) -> np.ndarray:
     out = np.zeros((len(boxes_a), len(boxes_b)))
     if not len(boxes_a) or not len(boxes_b):
         return out
-    lo_a, hi_a, print_a, mid_a, rad_a, vol_a = _prepared(boxes_a, up)
-    lo_b, hi_b, print_b, mid_b, rad_b, vol_b = _prepared(boxes_b, up)
+    lo_a, hi_a, print_a, mid_a, diag_a, vol_a = _prepared(boxes_a, up)
+    lo_b, hi_b, print_b, mid_b, diag_b, vol_b = _prepared(boxes_b, up)
     height = np.minimum(hi_a[:, None], hi_b[None]) - np.maximum(lo_a[:, None], lo_b[None])
     distance = np.sqrt(np.square(mid_a[:, None] - mid_b[None]).sum(-1))
-    near = (height > 0) & (distance <= (rad_a[:, None] + rad_b[None]) / 2)
+    near = (height > 0) & (distance <= (diag_a[:, None] + diag_b[None]) / 2)
     for i, j in zip(*np.nonzero(near)):
         area, _ = cv2.intersectConvexConvex(print_a[i], print_b[j])
         if area <= 0:

@@ -27,16 +27,17 @@ def box(center, size=(1, 1, 1), yaw=0.0, name="chair", score=0.9, up=geometry.UP
                score, geometry.box_corners(np.asarray(center, float), np.asarray(size, float), R))
 
 
-
 def test_iou_matrix_is_the_pairwise_iou_whatever_the_company():
     """iou_matrix screens pairs (height overlap, footprint distance) for many boxes at once:
-    each entry must be what the pair alone gives, including pairs that touch, are far apart or
-    sit one above the other, and the matrix must be symmetric with ones on its diagonal."""
+    each entry must be what the polygon intersection of the pair gives without screening,
+    including pairs that are far apart or sit one on the other, and the matrix must be
+    symmetric with ones on its diagonal."""
     rng = np.random.default_rng(0)
     boxes = [box(rng.uniform(-2, 2, 3), size=rng.uniform(0.2, 1.5, 3),
                  yaw=rng.uniform(-np.pi, np.pi)) for _ in range(25)]
     boxes.append(box(boxes[0].center + [0, 0, boxes[0].size[1]], size=boxes[0].size))  # on top
     m = iou_matrix(boxes, boxes)
+
     def brute_force(a, b):   # every pair through the polygon intersection, no screening
         (lo_a, hi_a), (lo_b, hi_b) = vertical_range(a.center, a.size), \
             vertical_range(b.center, b.size)
@@ -53,6 +54,7 @@ def test_iou_matrix_is_the_pairwise_iou_whatever_the_company():
     assert m[0, -1] == 0.0 and 0 < (m > 0).sum() - len(boxes) < len(boxes) ** 2 - len(boxes)
     assert iou_matrix([], boxes).shape == (0, len(boxes))
     assert iou_matrix(boxes, []).shape == (len(boxes), 0)
+
 
 @pytest.mark.parametrize("up", [geometry.UP_Z, Y_UP])
 def test_iou_known_values(up):
