@@ -9,7 +9,7 @@ evaluation form (frozen norms, no colour jitter) with 4 iterations, the training
 gives it (cost: center distance minus the class probability), median over targets; "along
 ray" and "lateral" split the last iteration's error along the ray from the middle view's
 camera and across it.  A large train/validation gap in the loss parts means the model learned
-the training scenes, not the task: the README's demo section reads it that way.
+the training scenes, not the task: docs/demo-experiments.md, "More scenes", reads it that way.
 """
 from __future__ import annotations
 

@@ -11,7 +11,7 @@ between a training snippet's views (parq-train --gap); each is then tuned, expor
 tunes the post-processing on data/val (python -m parq_train.tune), exports to the folder, prints
 held-out F1 (tradeoff.py's 40 scenes) at 1, 2 and 4 iterations x 32 queries, at 2 x 32 with
 the other gap (1 <-> 3), and writes error_analysis.py's tables (ray split included) beside the
-folder.  The README's "Wider snippets" paragraph gives what the runs of 2026-12-01 printed.
+folder.  docs/demo-experiments.md, "Wider snippets", gives what the runs of 2026-12-01 printed.
 """
 from __future__ import annotations
 

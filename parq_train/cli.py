@@ -55,7 +55,7 @@ def parser() -> argparse.ArgumentParser:
                    help="processes generating scenes (default: one per core)")
     p.add_argument("--frames", type=positive_int, default=30,
                    help="frames per training scene (default 30: more short scenes, not fewer "
-                        "long ones, generalise better; see the README)")
+                        "long ones, generalise better; see docs/demo-experiments.md)")
     p.add_argument("--pretrain-steps", type=non_negative_int, default=8000,
                    help="backbone pretraining steps on depth and object classes, the stand-in "
                         "for ImageNet weights (default 8000; 0 skips it)")
@@ -77,7 +77,7 @@ def parser() -> argparse.ArgumentParser:
                    help="peak learning rate (default 5e-4)")
     p.add_argument("--backbone-lr", type=non_negative_float, default=1.0,
                    help="the pretrained ResNet-FPN's learning rate as a fraction of --lr "
-                        "(default 1.0; 0.1 trained worse, see the README)")
+                        "(default 1.0; 0.1 trained worse, see docs/demo-experiments.md)")
     p.add_argument("--fused-attention", action="store_true",
                    help="torch's fused attention kernel in training: the same arithmetic in "
                         "another rounding order, 0.185 s a step at 2 threads against 0.205; "
