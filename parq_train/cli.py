@@ -87,8 +87,8 @@ def parser() -> argparse.ArgumentParser:
                    help="train (not pretrain) under bfloat16 autocast: on a Xeon with AMX a "
                         "step took 0.47 s at --batch 8 against 0.60 in float32 (0.26 against "
                         "0.31 at batch 4; benchmarks/train_step.py); without AMX bfloat16 is "
-                        "emulated and slower. Off by default: the default command rebuilds the "
-                        "shipped demo bit for bit")
+                        "emulated and slower. Both runs with it trained worse models than the "
+                        "demo's float32 (benchmarks/results/bf16_batch4.md); off by default")
     p.add_argument("--snapshot-every", type=non_negative_int, default=2000,
                    help="also write OUTPUT's stem + '-stepN.pt' every N training steps "
                         "(0: never; default 2000)")
