@@ -2,12 +2,12 @@
 
     python benchmarks/bf16_forward.py work/g3/g3.pt --val data/val
 
-Runs the checkpoint on every 6th snippet of the first 10 validation scenes (at most 48: 45 in
-data/val), in batches of 8, 4 iterations, evaluation form, once in float32 and once under the
-CPU autocast that ``parq-train --bf16`` trains with, and prints the median and 90th
-percentile of the distance between the two runs' centres, per iteration, over every query.  It
-separates the rounding of bfloat16 arithmetic from what a model trained under it learned
-(benchmarks/results/bf16_batch4.md).
+Runs the checkpoint on generalization.py's snippets of the first 10 validation scenes (every
+4th), in batches of 8, 4 iterations, evaluation form, training's attention form ("cached"),
+once in float32 and once under the CPU autocast that ``parq-train --bf16`` trains with, and
+prints the median and 90th percentile of the distance between the two runs' centres, per
+iteration, over every query.  It separates the rounding of bfloat16 arithmetic from what a
+model trained under it learned (benchmarks/results/bf16_batch4.md).
 """
 from __future__ import annotations
 
@@ -17,11 +17,11 @@ import pathlib
 import numpy as np
 import torch
 
+import generalization
 from parq_export import checkpoint
-from parq_train.data import scene_snippets
 from parq_train.train import to_batch
 
-ITERATIONS = 4
+ITERATIONS = generalization.ITERATIONS
 
 
 def main() -> None:
@@ -31,15 +31,15 @@ def main() -> None:
                    help="folder of validation scenes (default data/val)")
     args = p.parse_args()
     model = checkpoint.load(args.checkpoint).model()
-    folders = sorted(f for f in args.val.iterdir() if (f / "boxes.json").is_file())[:10]
-    items = [s for f in folders for s in scene_snippets(f, model.config)[::6]][:48]
+    items = generalization.snippets(args.val, 10, model.config)
     distances = [[] for _ in range(ITERATIONS)]
     with torch.no_grad():
         for i in range(0, len(items), 8):
             images, camera, T_local_camera, _ = to_batch(items[i:i + 8])
-            exact = model(images, camera, T_local_camera, iterations=ITERATIONS)
+            exact = model(images, camera, T_local_camera, iterations=ITERATIONS, form="cached")
             with torch.autocast("cpu", dtype=torch.bfloat16):
-                rounded = model(images, camera, T_local_camera, iterations=ITERATIONS)
+                rounded = model(images, camera, T_local_camera, iterations=ITERATIONS,
+                                form="cached")
             for it in range(ITERATIONS):
                 d = (exact[it]["center"].float() - rounded[it]["center"].float()).norm(dim=-1)
                 distances[it].append(d.flatten().numpy())
