@@ -1,0 +1,170 @@
+"""How much of a difference in held-out F1 is noise: bootstrap intervals over the scenes.
+
+tradeoff.py's F1 pools 40 held-out scenes; another 40 (other seeds, a user's own) give another
+number, so a model that scores 0.02 above another on them may not be better.  This script runs
+each model folder at one setting on the held-out scenes (parq-synth seed 3000, the same cache as
+tradeoff.py), keeps every scene's match counts, and resamples the scenes with replacement
+(--resamples times, a fixed seed) to print
+
+* each model's scene-level F1 at IoU 0.25 and 0.5, with a 90% interval;
+* each later model's difference from the first, *paired*: both scored on the same resampled
+  scenes, so what the scenes share (an easy room, a hidden bin) cancels; with the fraction of
+  resamples in which the later model is ahead;
+* the F1 of each disjoint block of --block scenes: the spread between held-out sets of that
+  size, without resampling.
+
+Writes results/spread.{md,json} (--out).  F1 here is parq-eval's, pooled over scenes:
+2 TP / (predictions + ground truth), which is 2PR / (P + R).
+
+A model may name its own setting, MODEL:ITERSxQUERIES, to compare settings of one model the
+same way (the default is --iters x --queries):
+
+    python benchmarks/spread.py models/parq-demo work/s1/model --scenes 120
+    python benchmarks/spread.py models/parq-demo:1x32 models/parq-demo:4x32 --scenes 120
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import re
+import sys
+
+import numpy as np
+
+import common
+import tradeoff
+
+THRESHOLDS = ("0.25", "0.5")
+
+
+def scene_counts(model: str, scenes: list, iters: int, queries: int,
+                 threads: int | None) -> np.ndarray:
+    """(scenes, thresholds, 3) int: each scene's (true positives, predictions, ground-truth
+    boxes), pooled over classes, at the model's card post-processing."""
+    from parq_runtime import Detector, evaluation, readers, scene
+
+    detector = Detector(model, threads=threads)
+    settings = scene.RunSettings(iters=iters, queries=queries)
+    counts = np.zeros((len(scenes), len(THRESHOLDS), 3), dtype=np.int64)
+    for s, folder in enumerate(scenes):
+        result = scene.run(detector, readers.open_capture(folder), settings)
+        truth, up = evaluation.load_ground_truth(folder / "boxes.json")
+        for t, threshold in enumerate(THRESHOLDS):
+            per_class = evaluation.match_counts(result.fusion.boxes, truth, float(threshold),
+                                                detector.classes, up)
+            counts[s, t] = [sum(n[k] for n in per_class.values())
+                            for k in ("tp", "predictions", "ground_truth")]
+    return counts
+
+
+def f1(summed: np.ndarray) -> np.ndarray:
+    """F1 from (..., 3) summed counts."""
+    denominator = summed[..., 1] + summed[..., 2]
+    return np.where(denominator > 0, 2 * summed[..., 0] / np.maximum(denominator, 1), 0.0)
+
+
+def spread(counts: list, resamples: int, block: int, seed: int = 0) -> dict:
+    """counts: one (scenes, thresholds, 3) array per model, the same scenes in the same order.
+    Returns per model and threshold: F1, its 90% bootstrap interval, the block F1s, and for
+    models after the first the paired difference from the first."""
+    n = counts[0].shape[0]
+    index = np.random.default_rng(seed).integers(0, n, size=(resamples, n))
+    boot = [f1(c[index].sum(axis=1)) for c in counts]            # (resamples, thresholds)
+    out = []
+    for m, c in enumerate(counts):
+        row = {}
+        for t, name in enumerate(THRESHOLDS):
+            blocks = [float(f1(c[b:b + block, t].sum(axis=0)))
+                      for b in range(0, n - block + 1, block)]
+            entry = {"f1": float(f1(c[:, t].sum(axis=0))),
+                     "interval90": [float(v) for v in np.percentile(boot[m][:, t], [5, 95])],
+                     "blocks": blocks}
+            if m > 0:
+                d = boot[m][:, t] - boot[0][:, t]
+                entry["difference"] = entry["f1"] - float(f1(counts[0][:, t].sum(axis=0)))
+                entry["difference_interval90"] = [float(v) for v in np.percentile(d, [5, 95])]
+                entry["ahead"] = float((d > 0).mean())
+            row[name] = entry
+        out.append(row)
+    return out
+
+
+def markdown(models: list, rows: list, args) -> str:
+    lines = [f"{args.scenes} held-out scenes (parq-synth seed {tradeoff.HELD_OUT_SEED}, "
+             f"{args.size}), {args.iters} iterations x {args.queries} queries unless a model "
+             f"names its own (MODEL:ITERSxQUERIES), each model's card post-processing; 90% intervals from {args.resamples} resamples of the "
+             f"scenes; blocks: F1 of each run of {args.block} scenes.", ""]
+    head = "| model | " + " | ".join(
+        f"F1@{t} | 90% interval | blocks of {args.block} | vs first, paired | ahead"
+        for t in THRESHOLDS) + " |"
+    lines += [head, "|---" * (1 + 5 * len(THRESHOLDS)) + "|"]
+    for model, row in zip(models, rows):
+        cells = [model]
+        for t in THRESHOLDS:
+            e = row[t]
+            lo, hi = e["interval90"]
+            cells += [f"{e['f1']:.3f}", f"{lo:.3f}-{hi:.3f}",
+                      " ".join(f"{b:.2f}" for b in e["blocks"])]
+            if "difference" in e:
+                dlo, dhi = e["difference_interval90"]
+                cells += [f"{e['difference']:+.3f} ({dlo:+.3f} to {dhi:+.3f})",
+                          f"{e['ahead']:.0%}"]
+            else:
+                cells += ["", ""]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def parse_entry(entry: str, iters: int, queries: int) -> tuple:
+    """'MODEL' or 'MODEL:ITERSxQUERIES' -> (model folder, iterations, queries)."""
+    model, _, setting = entry.rpartition(":")
+    if model and re.fullmatch(r"\d+x\d+", setting):
+        i, q = setting.split("x")
+        return model, int(i), int(q)
+    return entry, iters, queries
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("models", nargs="+",
+                   help="model folders, each optionally :ITERSxQUERIES (e.g. "
+                        "models/parq-demo:4x32); the first is the baseline")
+    tradeoff.add_scene_arguments(p, "score")
+    p.add_argument("--iters", type=int, default=2,
+                   help="recurrent iterations of models without their own setting (default 2)")
+    p.add_argument("--queries", type=int, default=32,
+                   help="queries of models without their own setting (default 32)")
+    p.add_argument("--resamples", type=int, default=10000,
+                   help="bootstrap resamples of the scenes (default 10000)")
+    p.add_argument("--block", type=int, default=40,
+                   help="scenes per disjoint block (default 40, tradeoff.py's count)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="onnxruntime threads (default: its own choice)")
+    p.add_argument("--out", default=str(common.RESULTS / "spread"),
+                   help="output stem: .md and .json (default results/spread)")
+    args = p.parse_args()
+    if args.model != p.get_default("model"):
+        p.error("give the model folders as positional arguments, not --model")
+    scenes, _ = tradeoff.scenes_from_arguments(args)
+    counts = []
+    for entry in args.models:
+        model, iters, queries = parse_entry(entry, args.iters, args.queries)
+        counts.append(scene_counts(model, scenes, iters, queries, args.threads))
+        print(f"{entry}: " + "  ".join(
+            f"F1@{t} {float(f1(counts[-1][:, i].sum(axis=0))):.3f}"
+            for i, t in enumerate(THRESHOLDS)), file=sys.stderr, flush=True)
+    rows = spread(counts, args.resamples, args.block)
+    out = pathlib.Path(args.out)
+    text = markdown(args.models, rows, args)
+    out.with_suffix(".md").write_text(text)
+    out.with_suffix(".json").write_text(json.dumps(
+        {"scenes": args.scenes, "size": args.size, "iters": args.iters,
+         "queries": args.queries, "resamples": args.resamples, "block": args.block,
+         "models": args.models, "rows": rows,
+         "scene_counts": {m: c.tolist() for m, c in zip(args.models, counts)}}, indent=1))
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
