@@ -87,8 +87,9 @@ def parser() -> argparse.ArgumentParser:
                    help="train (not pretrain) under bfloat16 autocast: on a Xeon with AMX a "
                         "step took 0.47 s at --batch 8 against 0.60 in float32 (0.26 against "
                         "0.31 at batch 4; benchmarks/train_step.py); without AMX bfloat16 is "
-                        "emulated and slower. Both runs with it trained worse models than the "
-                        "demo's float32 (benchmarks/results/bf16_batch4.md); off by default")
+                        "emulated and slower. Neither run with it beat the demo's float32: 0.02 "
+                        "lower F1@0.25 on 120 held-out scenes, level at IoU 0.5 "
+                        "(benchmarks/results/spread-models.md); off by default")
     p.add_argument("--snapshot-every", type=non_negative_int, default=2000,
                    help="also write OUTPUT's stem + '-stepN.pt' every N training steps "
                         "(0: never; default 2000)")
