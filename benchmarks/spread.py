@@ -38,13 +38,11 @@ import tradeoff
 THRESHOLDS = ("0.25", "0.5")
 
 
-def scene_counts(model: str, scenes: list, iters: int, queries: int,
-                 threads: int | None) -> np.ndarray:
+def scene_counts(detector, scenes: list, iters: int, queries: int) -> np.ndarray:
     """(scenes, thresholds, 3) int: each scene's (true positives, predictions, ground-truth
-    boxes), pooled over classes, at the model's card post-processing."""
-    from parq_runtime import Detector, evaluation, readers, scene
+    boxes), pooled over classes, at the model card's post-processing."""
+    from parq_runtime import evaluation, readers, scene
 
-    detector = Detector(model, threads=threads)
     settings = scene.RunSettings(iters=iters, queries=queries)
     counts = np.zeros((len(scenes), len(THRESHOLDS), 3), dtype=np.int64)
     for s, folder in enumerate(scenes):
@@ -130,7 +128,7 @@ def main():
     p.add_argument("models", nargs="+",
                    help="model folders, each optionally :ITERSxQUERIES (e.g. "
                         "models/parq-demo:4x32); the first is the baseline")
-    tradeoff.add_scene_arguments(p, "score")
+    tradeoff.add_scene_arguments(p, "score", model=False)
     p.add_argument("--iters", type=int, default=2,
                    help="recurrent iterations of models without their own setting (default 2)")
     p.add_argument("--queries", type=int, default=32,
@@ -144,13 +142,18 @@ def main():
     p.add_argument("--out", default=str(common.RESULTS / "spread"),
                    help="output stem: .md and .json (default results/spread)")
     args = p.parse_args()
-    if args.model != p.get_default("model"):
-        p.error("give the model folders as positional arguments, not --model")
+    if len(set(args.models)) < len(args.models):
+        p.error("a model (and setting) is given twice")
+
+    from parq_runtime import Detector
+
     scenes, _ = tradeoff.scenes_from_arguments(args)
-    counts = []
+    detectors, counts = {}, []
     for entry in args.models:
         model, iters, queries = parse_entry(entry, args.iters, args.queries)
-        counts.append(scene_counts(model, scenes, iters, queries, args.threads))
+        if model not in detectors:
+            detectors[model] = Detector(model, threads=args.threads)
+        counts.append(scene_counts(detectors[model], scenes, iters, queries))
         print(f"{entry}: " + "  ".join(
             f"F1@{t} {float(f1(counts[-1][:, i].sum(axis=0))):.3f}"
             for i, t in enumerate(THRESHOLDS)), file=sys.stderr, flush=True)

@@ -30,11 +30,13 @@ ITERATIONS = (1, 2, 4, 8)
 QUERIES = (16, 32, 64, 128)
 
 
-def add_scene_arguments(p: argparse.ArgumentParser, use: str) -> None:
-    """--model, --scenes, --frames, --size: the demo model and the held-out scenes a script
-    ``use``s (this one and error_analysis.py read them with :func:`scenes_from_arguments`)."""
-    p.add_argument("--model", default=str(common.ROOT / "models" / "parq-demo"),
-                   help=f"model folder to {use} (default models/parq-demo)")
+def add_scene_arguments(p: argparse.ArgumentParser, use: str, model: bool = True) -> None:
+    """--model (unless ``model`` is false), --scenes, --frames, --size: the demo model and the
+    held-out scenes a script ``use``s (this one, error_analysis.py and spread.py read them with
+    :func:`scenes_from_arguments`)."""
+    if model:
+        p.add_argument("--model", default=str(common.ROOT / "models" / "parq-demo"),
+                       help=f"model folder to {use} (default models/parq-demo)")
     p.add_argument("--scenes", type=int, default=40,
                    help=f"held-out scenes (parq-synth seed {HELD_OUT_SEED}) to score "
                         "(default 40)")
