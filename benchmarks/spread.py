@@ -41,15 +41,13 @@ THRESHOLDS = ("0.25", "0.5")
 def scene_counts(detector, scenes: list, iters: int, queries: int) -> np.ndarray:
     """(scenes, thresholds, 3) int: each scene's (true positives, predictions, ground-truth
     boxes), pooled over classes, at the model card's post-processing."""
-    from parq_runtime import evaluation, readers, scene
+    from parq_runtime import evaluation
 
-    settings = scene.RunSettings(iters=iters, queries=queries)
+    pairs, _ = tradeoff.run_scenes(detector, scenes, iters, queries)
     counts = np.zeros((len(scenes), len(THRESHOLDS), 3), dtype=np.int64)
-    for s, folder in enumerate(scenes):
-        result = scene.run(detector, readers.open_capture(folder), settings)
-        truth, up = evaluation.load_ground_truth(folder / "boxes.json")
+    for s, (boxes, truth, up) in enumerate(pairs):
         for t, threshold in enumerate(THRESHOLDS):
-            per_class = evaluation.match_counts(result.fusion.boxes, truth, float(threshold),
+            per_class = evaluation.match_counts(boxes, truth, float(threshold),
                                                 detector.classes, up)
             counts[s, t] = [sum(n[k] for n in per_class.values())
                             for k in ("tp", "predictions", "ground_truth")]
@@ -91,8 +89,9 @@ def spread(counts: list, resamples: int, block: int, seed: int = 0) -> dict:
 def markdown(models: list, rows: list, args) -> str:
     lines = [f"{args.scenes} held-out scenes (parq-synth seed {tradeoff.HELD_OUT_SEED}, "
              f"{args.size}), {args.iters} iterations x {args.queries} queries unless a model "
-             f"names its own (MODEL:ITERSxQUERIES), each model's card post-processing; 90% intervals from {args.resamples} resamples of the "
-             f"scenes; blocks: F1 of each run of {args.block} scenes.", ""]
+             f"names its own (MODEL:ITERSxQUERIES), each model's card post-processing; "
+             f"90% intervals from {args.resamples} resamples of the scenes; blocks: F1 of "
+             f"each run of {args.block} scenes.", ""]
     head = "| model | " + " | ".join(
         f"F1@{t} | 90% interval | blocks of {args.block} | vs first, paired | ahead"
         for t in THRESHOLDS) + " |"

@@ -61,10 +61,10 @@ def held_out_scenes(folder: pathlib.Path, scenes: int, frames: int, size) -> lis
     return [folder / scene_name(k) for k in range(scenes)]
 
 
-def evaluate_setting(detector, scenes, iters, queries, score_threshold=None,
-                     gap=None) -> tuple:
-    """(metrics, per-snippet seconds) over the scenes; ``gap``: keyframes between a snippet's
-    views (None: the model card's)."""
+def run_scenes(detector, scenes, iters, queries, score_threshold=None, gap=None) -> tuple:
+    """parq-run's pipeline on each scene: ([(fused boxes, ground-truth boxes, up), ...] in
+    scene order, per-snippet seconds); ``gap``: keyframes between a snippet's views (None:
+    the model card's)."""
     from parq_runtime import evaluation, readers, scene
 
     pairs, seconds = [], []
@@ -76,6 +76,16 @@ def evaluate_setting(detector, scenes, iters, queries, score_threshold=None,
         truth, up = evaluation.load_ground_truth(folder / "boxes.json")
         pairs.append((result.fusion.boxes, truth, up))
         seconds += [s.seconds for s in result.snippets]
+    return pairs, seconds
+
+
+def evaluate_setting(detector, scenes, iters, queries, score_threshold=None,
+                     gap=None) -> tuple:
+    """(metrics, per-snippet seconds) over the scenes, pooled as parq-eval does; arguments as
+    :func:`run_scenes`'s."""
+    from parq_runtime import evaluation
+
+    pairs, seconds = run_scenes(detector, scenes, iters, queries, score_threshold, gap)
     return evaluation.evaluate(pairs, detector.classes), seconds
 
 
