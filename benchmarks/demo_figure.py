@@ -27,10 +27,10 @@ def main():
     p.add_argument("--out", default=str(common.ROOT / "models" / "parq-demo"
                                          / "sample-scene-overlay.png"),
                    help="PNG to write (default the demo's sample-scene-overlay.png)")
-    p.add_argument("--iters", type=int, default=2,
-                   help="recurrent iterations (default 2)")
-    p.add_argument("--queries", type=int, default=32,
-                   help="queries (default 32)")
+    p.add_argument("--iters", type=int, default=None,
+                   help="recurrent iterations (default: the model card's run setting)")
+    p.add_argument("--queries", type=int, default=None,
+                   help="queries (default: the model card's run setting)")
     args = p.parse_args()
 
     from parq_runtime import Detector, evaluation, readers, scene, visualize

@@ -17,7 +17,8 @@ Writes results/spread.{md,json} (--out).  F1 here is parq-eval's, pooled over sc
 2 TP / (predictions + ground truth), which is 2PR / (P + R).
 
 A model may name its own setting, MODEL:ITERSxQUERIES, to compare settings of one model the
-same way (the default is --iters x --queries):
+same way (the default is --iters x --queries where given, else the model card's run setting,
+what parq-run runs by default; the table names each entry's setting):
 
     python benchmarks/spread.py models/parq-demo work/s1/model --scenes 120
     python benchmarks/spread.py models/parq-demo:1x32 models/parq-demo:4x32 --scenes 120
@@ -86,18 +87,17 @@ def spread(counts: list, resamples: int, block: int, seed: int = 0) -> dict:
     return out
 
 
-def markdown(models: list, rows: list, args) -> str:
+def markdown(models: list, settings: list, rows: list, args) -> str:
     lines = [f"{args.scenes} held-out scenes (parq-synth seed {tradeoff.HELD_OUT_SEED}, "
-             f"{args.size}), {args.iters} iterations x {args.queries} queries unless a model "
-             f"names its own (MODEL:ITERSxQUERIES), each model's card post-processing; "
-             f"90% intervals from {args.resamples} resamples of the scenes; blocks: F1 of "
-             f"each run of {args.block} scenes.", ""]
-    head = "| model | " + " | ".join(
+             f"{args.size}), each model's card post-processing, at the setting (iterations "
+             f"x queries) in its row; 90% intervals from {args.resamples} resamples of the "
+             f"scenes; blocks: F1 of each run of {args.block} scenes.", ""]
+    head = "| model | setting | " + " | ".join(
         f"F1@{t} | 90% interval | blocks of {args.block} | vs first, paired | ahead"
         for t in THRESHOLDS) + " |"
-    lines += [head, "|---" * (1 + 5 * len(THRESHOLDS)) + "|"]
-    for model, row in zip(models, rows):
-        cells = [model]
+    lines += [head, "|---" * (2 + 5 * len(THRESHOLDS)) + "|"]
+    for model, (iters, queries), row in zip(models, settings, rows):
+        cells = [model, f"{iters} x {queries}"]
         for t in THRESHOLDS:
             e = row[t]
             lo, hi = e["interval90"]
@@ -113,8 +113,9 @@ def markdown(models: list, rows: list, args) -> str:
     return "\n".join(lines) + "\n"
 
 
-def parse_entry(entry: str, iters: int, queries: int) -> tuple:
-    """'MODEL' or 'MODEL:ITERSxQUERIES' -> (model folder, iterations, queries)."""
+def parse_entry(entry: str, iters: int | None, queries: int | None) -> tuple:
+    """'MODEL' or 'MODEL:ITERSxQUERIES' -> (model folder, iterations, queries); without a
+    setting, ``iters`` and ``queries`` (None: the model card's run setting)."""
     model, _, setting = entry.rpartition(":")
     if model and re.fullmatch(r"\d+x\d+", setting):
         i, q = setting.split("x")
@@ -128,10 +129,12 @@ def main():
                    help="model folders, each optionally :ITERSxQUERIES (e.g. "
                         "models/parq-demo:4x32); the first is the baseline")
     tradeoff.add_scene_arguments(p, "score", model=False)
-    p.add_argument("--iters", type=int, default=2,
-                   help="recurrent iterations of models without their own setting (default 2)")
-    p.add_argument("--queries", type=int, default=32,
-                   help="queries of models without their own setting (default 32)")
+    p.add_argument("--iters", type=int, default=None,
+                   help="recurrent iterations of models without their own setting (default: "
+                        "each model card's run setting)")
+    p.add_argument("--queries", type=int, default=None,
+                   help="queries of models without their own setting (default: each model "
+                        "card's run setting)")
     p.add_argument("--resamples", type=int, default=10000,
                    help="bootstrap resamples of the scenes (default 10000)")
     p.add_argument("--block", type=int, default=40,
@@ -147,23 +150,27 @@ def main():
     from parq_runtime import Detector
 
     scenes, _ = tradeoff.scenes_from_arguments(args)
-    detectors, counts = {}, []
+    detectors, counts, settings = {}, [], []
     for entry in args.models:
         model, iters, queries = parse_entry(entry, args.iters, args.queries)
         if model not in detectors:
             detectors[model] = Detector(model, threads=args.threads)
+        card = detectors[model].card
+        iters = card.run_iters if iters is None else iters
+        queries = card.run_queries if queries is None else queries
+        settings.append((iters, queries))
         counts.append(scene_counts(detectors[model], scenes, iters, queries))
         print(f"{entry}: " + "  ".join(
             f"F1@{t} {float(f1(counts[-1][:, i].sum(axis=0))):.3f}"
             for i, t in enumerate(THRESHOLDS)), file=sys.stderr, flush=True)
     rows = spread(counts, args.resamples, args.block)
     out = pathlib.Path(args.out)
-    text = markdown(args.models, rows, args)
+    text = markdown(args.models, settings, rows, args)
     out.with_suffix(".md").write_text(text)
     out.with_suffix(".json").write_text(json.dumps(
-        {"scenes": args.scenes, "size": args.size, "iters": args.iters,
-         "queries": args.queries, "resamples": args.resamples, "block": args.block,
-         "models": args.models, "rows": rows,
+        {"scenes": args.scenes, "size": args.size, "resamples": args.resamples,
+         "block": args.block, "models": args.models,
+         "settings": [{"iters": i, "queries": q} for i, q in settings], "rows": rows,
          "scene_counts": {m: c.tolist() for m, c in zip(args.models, counts)}}, indent=1))
     print(text)
 

@@ -74,6 +74,10 @@ class PARQConfig:
     # keyframes between a snippet's views: 1 = consecutive (the authors'); a model trained on
     # wider snippets (parq-train --gap) records its gap here and parq-run uses it
     snippet_gap: int = 1
+    # what parq-run runs without --iters / --queries: the setting the post-processing was
+    # chosen for (parq_train.tune); 2 x 32 unless a tuning chose otherwise
+    run_iters: int = 2
+    run_queries: int = 32
     extra: dict = field(default_factory=dict, compare=False)  # free-form provenance
 
     feature_stride = 4  # FPN level P2; every level is resized to it
@@ -103,6 +107,10 @@ class PARQConfig:
         if isinstance(self.snippet_gap, bool) or not isinstance(self.snippet_gap, int) \
                 or self.snippet_gap < 1:
             problems.append(f"snippet_gap {self.snippet_gap!r} must be an integer >= 1")
+        for name in ("run_iters", "run_queries"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                problems.append(f"{name} {value!r} must be an integer >= 1")
         if not 0 < self.ray_depth[0] < self.ray_depth[1]:
             problems.append(f"ray_depth {self.ray_depth} must be 0 < near < far")
         if problems:

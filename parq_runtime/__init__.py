@@ -2,7 +2,7 @@
 
     from parq_runtime import Detector
     det = Detector("models/parq-demo")
-    result = det.detect(images, intrinsics, cam_to_world, iters=2, queries=32)
+    result = det.detect(images, intrinsics, cam_to_world, iters=2, queries=64)
 """
 
 __version__ = "0.1.0"

@@ -37,11 +37,14 @@ def parser() -> argparse.ArgumentParser:
                    default=pathlib.Path(os.environ.get("PARQ_MODEL", DEFAULT_MODEL)),
                    help="model folder written by parq-export (default: $PARQ_MODEL or "
                         "the shipped demo model, models/parq-demo)")
-    p.add_argument("--iters", type=positive_int, default=2,
-                   help="recurrent iterations per snippet (default 2; more is slower and "
-                        "usually more accurate)")
-    p.add_argument("--queries", type=positive_int, default=32,
-                   help="number of queries (reference points) per snippet (default 32)")
+    p.add_argument("--iters", type=positive_int, default=None,
+                   help="recurrent iterations per snippet (default: the model card's run "
+                        "setting, 2 for the demo and the authors' checkpoints; more is slower "
+                        "and usually more accurate)")
+    p.add_argument("--queries", type=positive_int, default=None,
+                   help="number of queries (reference points) per snippet (default: the "
+                        "model card's run setting, 64 for the demo, 32 for the authors' "
+                        "checkpoints; fewer is faster)")
     p.add_argument("--views", type=positive_int, default=3,
                    help="keyframes per snippet (default 3, as the authors train)")
     p.add_argument("--stride", type=positive_int, default=None,
@@ -137,7 +140,7 @@ def run(args) -> int:
     from . import files, ply, readers, results, scene, visualize
     from .detector import MAX_ITERATIONS, Detector
 
-    if args.iters > MAX_ITERATIONS:
+    if args.iters is not None and args.iters > MAX_ITERATIONS:
         raise ParqError(f"--iters {args.iters}: at most {MAX_ITERATIONS}")
     check_outputs(args)
     capture = readers.open_capture(args.frames, args.format, args.up)
@@ -154,7 +157,8 @@ def run(args) -> int:
         keyframe_angle=args.keyframe_angle, keyframe_distance=args.keyframe_distance,
         max_snippets=args.max_snippets, fusion=args.fusion, min_support=args.min_support,
         ray_ratio=args.ray_ratio)
-    detector.reference_points(args.queries)  # argument check before the long part
+    # checked before the long part
+    detector.reference_points(scene.resolved(settings, detector.card).queries)
     keys, snippets = scene.plan(capture, settings, detector.card)
     if not snippets:
         gap = scene.snippet_gap(settings, detector.card)
@@ -166,7 +170,8 @@ def run(args) -> int:
     result = scene.run(detector, capture, settings, Progress(not args.quiet))
     threshold = detector.card.score_threshold if args.score_threshold is None \
         else args.score_threshold
-    text = json.dumps(results.to_json(result, settings, detector.card, threshold), indent=1)
+    text = json.dumps(results.to_json(result, result.settings, detector.card, threshold),
+                      indent=1)
     images = visualize.write(result, args.vis) if args.vis is not None else 0
     if args.ply is not None:
         ply.write(args.ply, result.fusion.boxes)

@@ -2,7 +2,7 @@
 
     from parq_runtime import Detector
     det = Detector("models/parq-demo")
-    result = det.detect(images, intrinsics, cam_to_world, iters=2, queries=32)
+    result = det.detect(images, intrinsics, cam_to_world)   # iters, queries: the card's
     for box in result.boxes:
         print(box.class_name, box.score, box.center)
 """
@@ -21,7 +21,7 @@ from . import boxes as box_decoding
 from . import geometry, loop, model_card, preprocess, queries as query_points, sessions
 from .errors import ParqError
 
-MAX_ITERATIONS = 1000
+MAX_ITERATIONS = model_card.MAX_ITERATIONS
 FORMS = ("auto", "cached", "folded")
 
 
@@ -214,7 +214,8 @@ class Detector:
         return ({k: result[k] for k in loop.FACTOR_NAMES},
                 {k: result[k] for k in (loop.MEMORY_NAME,) + loop.OPERAND_NAMES})
 
-    def detect(self, images, intrinsics, cam_to_world, iters: int = 2, queries: int = 32,
+    def detect(self, images, intrinsics, cam_to_world, iters: int | None = None,
+               queries: int | None = None,
                score_threshold: float | None = None, region: bool = True,
                form: str = "auto", up=geometry.UP_Z, frame_keys=None,
                cache: "FeatureCache | None" = None) -> DetectionResult:
@@ -223,7 +224,8 @@ class Detector:
         images: N RGB uint8 arrays (H, W, 3), any size; intrinsics: 3x3 for all views or
         (N, 3, 3); cam_to_world: (N, 4, 4) OpenCV camera axes in a world whose up axis is
         ``up`` (z by default).  iters: recurrent iterations >= 1; queries: reference points
-        (see parq_runtime.queries).  score_threshold: default from the model card; region:
+        (see parq_runtime.queries); None: the model card's run setting (``run``: what its
+        post-processing was chosen for).  score_threshold: default from the model card; region:
         keep only centers inside the authors' evaluation region; form: attention form
         (``auto`` picks the cheaper of ``cached`` and ``folded``; both are exact).
 
@@ -232,8 +234,9 @@ class Detector:
         when cached); every snippet still gets its own ray encoding.  The views are then
         encoded in the order [cached..., new...]; results do not depend on view order beyond
         float rounding."""
-        iters = _check_count(iters, "iters", 1, MAX_ITERATIONS)
-        reference = self.reference_points(queries)
+        iters = _check_count(self.card.run_iters if iters is None else iters, "iters", 1,
+                             MAX_ITERATIONS)
+        reference = self.reference_points(self.card.run_queries if queries is None else queries)
         if form not in FORMS:
             raise ParqError(f"form must be one of {', '.join(FORMS)}, got {form!r}")
         threshold = self.card.score_threshold if score_threshold is None else score_threshold

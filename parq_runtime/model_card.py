@@ -18,6 +18,9 @@ from .errors import ParqError
 CARD_FORMAT = "parq-onnx-model"
 CARD_VERSION = 2  # 2: graphs pass the memory in factored form
 METADATA_KEY = "parq.model_card"
+# parq-run's iterations and queries for a card without a "run" entry (written before it existed)
+DEFAULT_RUN = {"iters": 2, "queries": 32}
+MAX_ITERATIONS = 1000   # recurrent iterations a run may ask for (the detector checks it)
 REQUIRED = ("classes", "mean_sizes", "image", "feature", "decoder", "reference_points",
             "postprocess", "graphs", "limits", "config")
 
@@ -112,6 +115,17 @@ class ModelCard:
         return int(self.raw.get("snippets", {}).get("gap", 1))
 
     @property
+    def run_iters(self) -> int:
+        """Iterations parq-run uses when not told: the setting its post-processing was chosen
+        for (``parq_train.tune``); cards without a ``run`` entry: 2."""
+        return int(self.raw.get("run", {}).get("iters", DEFAULT_RUN["iters"]))
+
+    @property
+    def run_queries(self) -> int:
+        """Queries parq-run uses when not told (as :attr:`run_iters`); cards without: 32."""
+        return int(self.raw.get("run", {}).get("queries", DEFAULT_RUN["queries"]))
+
+    @property
     def max_views(self) -> int:
         return int(self.raw["limits"]["max_views"])
 
@@ -194,4 +208,10 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
     if isinstance(gap, bool) or not isinstance(gap, int) or gap < 1:
         raise ParqError(f"{path}: snippets.gap must be an integer >= 1 (keyframes between a "
                         f"snippet's views), got {gap!r}")
+    run = raw.get("run", DEFAULT_RUN)
+    for key, limit in (("iters", MAX_ITERATIONS), ("queries", raw["limits"]["max_queries"])):
+        value = run.get(key, DEFAULT_RUN[key]) if isinstance(run, dict) else None
+        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= limit:
+            raise ParqError(f"{path}: run.{key} must be an integer from 1 to {limit} (the "
+                            f"default run setting), got {value!r}")
     return card

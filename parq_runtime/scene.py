@@ -5,7 +5,7 @@ Images are read from disk one snippet at a time, so memory stays flat however lo
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -17,8 +17,8 @@ from .readers import Capture
 
 @dataclass
 class RunSettings:
-    iters: int = 2
-    queries: int = 32
+    iters: int | None = None              # None: the model card's run setting
+    queries: int | None = None            # None: the model card's run setting
     views: int = 3
     stride: int | None = None
     gap: int | None = None                # None: the model card's
@@ -51,6 +51,7 @@ class SceneResult:
     fusion: SceneFusion | None = None
     seconds: float = 0.0
     gap: int = 1          # keyframes between a snippet's views, as run
+    settings: RunSettings | None = None   # as run: iterations and queries resolved
 
 
 def snippet_gap(settings: RunSettings, card) -> int:
@@ -69,11 +70,21 @@ def plan(capture: Capture, settings: RunSettings, card) -> tuple:
     return keys, snippets
 
 
+def resolved(settings: RunSettings, card) -> RunSettings:
+    """``settings`` with iterations and queries left None taken from the model card's run
+    setting (the one its post-processing was chosen for)."""
+    return replace(settings,
+                   iters=card.run_iters if settings.iters is None else settings.iters,
+                   queries=card.run_queries if settings.queries is None else settings.queries)
+
+
 def run(detector, capture: Capture, settings: RunSettings, progress=None) -> SceneResult:
-    """Detect in every snippet and fuse; ``progress(done, total)`` is called per snippet."""
+    """Detect in every snippet and fuse; ``progress(done, total)`` is called per snippet.
+    The result's ``settings`` are the ones run (iterations and queries resolved)."""
     start = time.perf_counter()
+    settings = resolved(settings, detector.card)
     keys, snippets = plan(capture, settings, detector.card)
-    result = SceneResult(capture, [capture.frames[i].name for i in keys],
+    result = SceneResult(capture, [capture.frames[i].name for i in keys], settings=settings,
                          fusion=SceneFusion(
                              up=capture.up,
                              mode=settings.fusion or detector.card.fusion,

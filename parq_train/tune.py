@@ -4,9 +4,12 @@ fusion (mode, minimum support and, for ``ray`` fusion, the ray ratio; parq_runti
 
 The authors fixed both for ScanNet (score > 0.8; centers with |x| < 1.5 m and z < 2 m in the
 snippet frame).  A model trained here scores on a different scale and sees different rooms,
-so the demo picks them on the validation scenes (parq-synth seed 2000, never trained on, never
-used for the reported numbers): the candidate that maximises F1@0.25 + F1@0.5 at the run
-settings users get by default; ties go to the authors' fusion (best, support 1).
+so the demo picks them on validation scenes (parq-synth seeds 2000 and 2001, never trained
+on, never used for the reported numbers; ``--data`` pools several folders): the candidate that
+maximises F1@0.25 + F1@0.5 at the run setting given (``--iters``, ``--queries``); ties go to
+the authors' fusion (best, support 1).  That setting is written to the card as the one
+parq-run uses when not told (``run``), so the default run is the one the post-processing was
+chosen for.
 
 Each validation snippet is run once with no threshold and no region; every candidate is
 then applied to those detections exactly as the runtime applies it (after NMS), and the scene
@@ -18,8 +21,10 @@ query scored by the snippet detections it makes above score 0.7, +1 for each tha
 ground-truth box of its class at IoU 0.25 and -0.5 for each that does not.  Runs with fewer
 queries start from the best ones, and the post-processing is chosen for that subset.
 
-    python -m parq_train.tune work/demo.pt --data data/val -o work/demo-tuned.pt
-    python -m parq_train.tune models/parq-demo --data data/val -o work/parq-demo-tuned
+    python -m parq_train.tune work/demo.pt --data data/val data/val2 --queries 64 \
+        -o work/demo-tuned.pt
+    python -m parq_train.tune models/parq-demo --data data/val data/val2 --queries 64 \
+        -o work/parq-demo-tuned
 
 Given a checkpoint it writes a checkpoint (parq-export it next).  Given an exported model
 folder it writes a copy of the folder whose card (and the graphs' mirrored cards) hold the
@@ -142,14 +147,17 @@ def main(argv=None) -> int:
     p = OneLineParser(prog="python -m parq_train.tune", description=__doc__.splitlines()[0])
     p.add_argument("checkpoint", type=pathlib.Path,
                    help="trained checkpoint (parq-train), or a model folder (parq-export)")
-    p.add_argument("--data", type=pathlib.Path, default=pathlib.Path("data/val"),
-                   help="validation scenes (default data/val: parq-synth seed 2000)")
-    p.add_argument("--scenes", type=positive_int, default=40,
-                   help="validation scenes used (default 40)")
+    p.add_argument("--data", type=pathlib.Path, nargs="+", default=[pathlib.Path("data/val")],
+                   help="one or more folders of validation scenes, pooled (default data/val: "
+                        "parq-synth seed 2000)")
+    p.add_argument("--scenes", type=positive_int, default=None,
+                   help="use the first N scenes of each --data folder (default: all)")
     p.add_argument("--iters", type=positive_int, default=2,
-                   help="iterations (default 2, parq-run's)")
+                   help="iterations to choose the post-processing for; the card records them "
+                        "as parq-run's default (default 2)")
     p.add_argument("--queries", type=positive_int, default=32,
-                   help="queries (default 32, parq-run's)")
+                   help="queries to choose the post-processing for; the card records them as "
+                        "parq-run's default (default 32; the demo's 64)")
     p.add_argument("-o", "--output", type=pathlib.Path, required=True,
                    help="checkpoint to write with the chosen post-processing (for a model "
                         "folder: the new model folder, which must not exist)")
@@ -166,19 +174,29 @@ def record_of(args, folders, best, table, ranking) -> dict:
     authors = next(r for r in table if all(r[k] == v for k, v in AUTHORS.items()))
     seeds = sorted({json.loads((f / "scene.json").read_text()).get("seed") for f in folders
                     if (f / "scene.json").exists()})
-    return {"data": str(args.data), "seeds": seeds, "scenes": len(folders),
+    return {"data": [str(d) for d in args.data], "seeds": seeds, "scenes": len(folders),
             "iters": args.iters,
             "queries": args.queries, "criterion": "max F1@0.25 + F1@0.5",
             "chosen": best, "authors_settings": authors, "query_ranking": ranking}
 
 
 def run(args) -> int:
-    folders = sorted(p.parent for p in args.data.glob("*/boxes.json"))[:args.scenes]
-    if not folders:
-        raise ParqError(f"{args.data}: no generated scenes (parq-synth)")
+    folders = validation_folders(args.data, args.scenes)
     if args.checkpoint.is_dir():
         return run_folder(args, folders)
     return run_checkpoint(args, folders)
+
+
+def validation_folders(data: list, scenes: int | None) -> list:
+    """The scenes of each folder in ``data`` (its first ``scenes``, or all), in order; a folder
+    without generated scenes is an error."""
+    folders = []
+    for folder in data:
+        found = sorted(p.parent for p in pathlib.Path(folder).glob("*/boxes.json"))
+        if not found:
+            raise ParqError(f"{folder}: no generated scenes (parq-synth)")
+        folders += found[:scenes]
+    return folders
 
 
 def run_folder(args, folders) -> int:
@@ -200,6 +218,7 @@ def run_folder(args, folders) -> int:
 
     def update(card):
         card["postprocess"].update({k: best[k] for k in CHOSEN})
+        card["run"] = {"iters": args.iters, "queries": args.queries}
         card["extra"] = dict(card.get("extra", {}), postprocess_tuning=record)
     card_rewrite.rewrite(args.checkpoint, args.output, update)
     print(json.dumps(record, indent=1))
@@ -239,7 +258,7 @@ def run_checkpoint(args, folders) -> int:
     model.config = loaded.config.replace(
         score_threshold=best["score_threshold"], eval_region=tuple(best["eval_region"]),
         fusion=best["fusion"], min_support=best["min_support"], ray_ratio=best["ray_ratio"],
-        extra=extra,
+        run_iters=args.iters, run_queries=args.queries, extra=extra,
         query_order=tuple(ranking["order"]) if ranking else loaded.config.query_order)
     metadata = {"tuning_table": table}
     checkpoint.save(args.output, model, metadata)

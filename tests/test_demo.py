@@ -47,7 +47,7 @@ def test_sample_scene_is_unseen():
 def test_demo_detects_objects_of_its_sample_scene():
     det = Detector(DEMO)
     capture = readers.open_capture(SAMPLE)
-    result = scene.run(det, capture, scene.RunSettings(iters=2, queries=32))
+    result = scene.run(det, capture, scene.RunSettings())   # the card's run setting
     truth, up = evaluation.load_ground_truth(SAMPLE / "boxes.json")
     metrics = evaluation.evaluate([(result.fusion.boxes, truth, up)], det.classes)
     # At least one object found with the right class at IoU 0.25, and the boxes are real

@@ -100,6 +100,38 @@ def test_snippet_gap_is_written_to_the_card_and_checked(tiny_model, tmp_path):
         tiny_config().replace(snippet_gap=0)
 
 
+def test_run_setting_is_written_to_the_card_and_checked(tiny_model, tmp_path):
+    """The card records parq-run's default iterations and queries (2 x 32 unless tuned);
+    a card without them reads as 2 x 32 (cards written before), detect() without them uses
+    the card's, and a value that is not an integer in range is refused, as is a config."""
+    card = json.loads((tiny_model / "model.json").read_text())
+    assert card["run"] == {"iters": 2, "queries": 32}
+    other = tmp_path / "other"
+    other.mkdir()
+    for f in ("backbone.onnx", "layer.onnx"):
+        (other / f).write_bytes((tiny_model / f).read_bytes())
+    (other / "model.json").write_text(json.dumps({k: v for k, v in card.items() if k != "run"}))
+    assert (Detector(other).card.run_iters, Detector(other).card.run_queries) == (2, 32)
+    (other / "model.json").write_text(json.dumps(dict(card, run={"iters": 1, "queries": 5})))
+    det = Detector(other)
+    rng = np.random.default_rng(3)
+    images = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(3)]
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    T_world_camera = np.repeat(np.eye(4)[None], 3, 0)
+    T_world_camera[:, 0, 3] = [0.0, 0.1, 0.2]
+    result = det.detect(images, K, T_world_camera, score_threshold=0.0, region=False,
+                        up=(0.0, -1.0, 0.0))
+    assert len(result.iterations) == 1 and result.iterations[0].center.shape[-2] == 5
+    for bad in ({"iters": 0, "queries": 5}, {"iters": 2, "queries": 10 ** 6},
+                {"iters": "2", "queries": 5}, {"iters": 2, "queries": True}, [2, 32]):
+        (other / "model.json").write_text(json.dumps(dict(card, run=bad)))
+        with pytest.raises(ParqError, match=r"run\.(iters|queries) must be an integer"):
+            Detector(other)
+    assert tiny_config().replace(run_queries=64).run_queries == 64
+    with pytest.raises(ValueError, match="run_iters"):
+        tiny_config().replace(run_iters=0)
+
+
 def test_views_resized_in_parallel_equal_one_at_a_time(tiny_model):
     """The thread pool that resizes a snippet's views changes nothing: the same images and
     cameras as one view at a time, and a bad view is still named (the first in view order)."""

@@ -121,6 +121,26 @@ def test_parq_run_spaces_a_snippets_views_by_the_gap(tiny_model, tmp_path):
                     "3 views 3 keyframes apart")
 
 
+def test_parq_run_defaults_to_the_cards_run_setting(tiny_model, tmp_path):
+    """Without --iters / --queries parq-run runs the card's run setting (the JSON says so);
+    flags override it."""
+    folder = write_scannet(tmp_path / "scene", frames=6)
+    card = json.loads((tiny_model / "model.json").read_text())
+    model = tmp_path / "model"
+    model.mkdir()
+    for f in ("backbone.onnx", "layer.onnx"):
+        (model / f).write_bytes((tiny_model / f).read_bytes())
+    (model / "model.json").write_text(json.dumps(dict(card, run={"iters": 1, "queries": 6})))
+    code, stdout, stderr = run_cli(folder, "--model", model, "-q")
+    assert code == 0, stderr
+    settings = json.loads(stdout)["settings"]
+    assert (settings["iters"], settings["queries"]) == (1, 6)
+    code, stdout, stderr = run_cli(folder, "--model", model, "--iters", 3, "--queries", 4, "-q")
+    assert code == 0, stderr
+    settings = json.loads(stdout)["settings"]
+    assert (settings["iters"], settings["queries"]) == (3, 4)
+
+
 def _one_line_error(code, stdout, stderr, *needles):
     assert code == 2, (code, stderr)
     assert "Traceback" not in stderr

@@ -361,6 +361,25 @@ def test_tune_a_model_folder_writes_a_new_folder_with_the_choice(tiny_model, tmp
     chosen = card.raw["extra"]["postprocess_tuning"]["chosen"]
     for key in tune.CHOSEN:
         assert card.raw["postprocess"][key] == chosen[key]
+    assert card.raw["run"] == {"iters": 2, "queries": 8}   # the setting it was tuned for
     assert card.raw["query_order"] == json.loads((tiny_model / "model.json").read_text())[
         "query_order"]
     assert tune.main([str(tiny_model), "--data", str(tmp_path / "val"), "-o", str(out)]) == 2
+
+
+def test_tune_pools_several_validation_folders(tmp_path):
+    """--data takes several folders: their scenes pooled in order, --scenes per folder; a
+    folder without scenes is named in the error."""
+    import parq_synth
+    from parq_runtime.errors import ParqError
+    from parq_train import tune
+
+    parq_synth.generate(tmp_path / "a", 2, 2000, frames=4, size=(32, 24))
+    parq_synth.generate(tmp_path / "b", 3, 2001, frames=4, size=(32, 24))
+    both = tune.validation_folders([tmp_path / "a", tmp_path / "b"], None)
+    assert [f.parent.name for f in both] == ["a", "a", "b", "b", "b"]
+    firsts = tune.validation_folders([tmp_path / "a", tmp_path / "b"], 1)
+    assert firsts == [both[0], both[2]]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ParqError, match="empty: no generated scenes"):
+        tune.validation_folders([tmp_path / "a", tmp_path / "empty"], None)
