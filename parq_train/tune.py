@@ -15,8 +15,8 @@ Each validation snippet is run once with no threshold and no region; every candi
 then applied to those detections exactly as the runtime applies it (after NMS), and the scene
 is fused and scored.  So the grid costs one detector pass, not one per candidate.
 
-Before that, when the run settings use fewer queries than the model learned, it ranks the
-learned queries (``query_order``, see parq_runtime.queries): one pass with all of them, each
+Before that, a checkpoint's learned queries are ranked (``query_order``, see
+parq_runtime.queries; a model folder keeps its own ranking): one pass with all of them, each
 query scored by the snippet detections it makes above score 0.7, +1 for each that overlaps a
 ground-truth box of its class at IoU 0.25 and -0.5 for each that does not.  Runs with fewer
 queries start from the best ones, and the post-processing is chosen for that subset.
@@ -232,24 +232,27 @@ def run_checkpoint(args, folders) -> int:
 
     loaded = checkpoint.load(args.checkpoint)
     learned = loaded.config.num_queries
-    ranking = None
     with tempfile.TemporaryDirectory() as tmp:
         tmp = pathlib.Path(tmp)
         export(args.checkpoint, tmp / "model", log=lambda *_: None)
         detector = Detector(tmp / "model")
+        # the ranking is recorded whatever --queries is, so that a run with fewer queries
+        # than the card's setting starts from the best ones
+        records = run_once(detector, folders, args.iters, learned)
+        utility = query_utility(records, learned)
+        order = rank_queries(utility)
+        ranking = {"utility": [float(u) for u in utility], "order": order,
+                   "criterion": f"snippet detections above {RANKING_SCORE}: +1 if IoU >= "
+                                f"{RANKING_IOU} with a box of its class, else "
+                                f"-{FALSE_WEIGHT}", "iters": args.iters}
         if args.queries < learned:
-            utility = query_utility(run_once(detector, folders, args.iters, learned), learned)
-            order = rank_queries(utility)
-            ranking = {"utility": [float(u) for u in utility], "order": order,
-                       "criterion": f"snippet detections above {RANKING_SCORE}: +1 if IoU >= "
-                                    f"{RANKING_IOU} with a box of its class, else "
-                                    f"-{FALSE_WEIGHT}", "iters": args.iters}
             ranked = loaded.model()
             ranked.config = loaded.config.replace(query_order=tuple(order))
             checkpoint.save(tmp / "ranked.pt", ranked, {})
             export(tmp / "ranked.pt", tmp / "ranked", log=lambda *_: None)
             detector = Detector(tmp / "ranked")
-        records = run_once(detector, folders, args.iters, args.queries)
+        if args.queries != learned:
+            records = run_once(detector, folders, args.iters, args.queries)
         classes = detector.classes
     best, table = select(records, classes)
     record = record_of(args, folders, best, table, ranking)
@@ -259,7 +262,7 @@ def run_checkpoint(args, folders) -> int:
         score_threshold=best["score_threshold"], eval_region=tuple(best["eval_region"]),
         fusion=best["fusion"], min_support=best["min_support"], ray_ratio=best["ray_ratio"],
         run_iters=args.iters, run_queries=args.queries, extra=extra,
-        query_order=tuple(ranking["order"]) if ranking else loaded.config.query_order)
+        query_order=tuple(order))
     metadata = {"tuning_table": table}
     checkpoint.save(args.output, model, metadata)
     print(json.dumps(record, indent=1))

@@ -383,3 +383,25 @@ def test_tune_pools_several_validation_folders(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ParqError, match="empty: no generated scenes"):
         tune.validation_folders([tmp_path / "a", tmp_path / "empty"], None)
+
+
+def test_tune_a_checkpoint_records_its_setting_and_a_query_ranking(tiny_checkpoint, tmp_path):
+    """python -m parq_train.tune CKPT: the tuned checkpoint carries the run setting it was
+    tuned for and a ranking of all learned queries, also when the setting uses all of them
+    (the ranking pass is then the tuning pass); both runs rank the queries alike."""
+    import parq_synth
+    from parq_export import checkpoint
+    from parq_train import tune
+
+    parq_synth.generate(tmp_path / "val", 2, 2000, frames=8, size=(64, 48))
+    configs = {}
+    for queries in (8, 20):                        # 20: the tiny model's learned count
+        out = tmp_path / f"tuned{queries}.pt"
+        assert tune.main([str(tiny_checkpoint), "--data", str(tmp_path / "val"), "-o",
+                          str(out), "--queries", str(queries), "--iters", "1"]) == 0
+        configs[queries] = checkpoint.load(out).config
+        assert (configs[queries].run_iters, configs[queries].run_queries) == (1, queries)
+        assert sorted(configs[queries].query_order) == list(range(20))
+        ranking = configs[queries].extra["postprocess_tuning"]["query_ranking"]
+        assert ranking["order"] == list(configs[queries].query_order)
+    assert configs[8].query_order == configs[20].query_order
