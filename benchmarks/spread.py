@@ -155,9 +155,7 @@ def main():
         model, iters, queries = parse_entry(entry, args.iters, args.queries)
         if model not in detectors:
             detectors[model] = Detector(model, threads=args.threads)
-        card = detectors[model].card
-        iters = card.run_iters if iters is None else iters
-        queries = card.run_queries if queries is None else queries
+        iters, queries = detectors[model].card.run_setting(iters, queries)
         settings.append((iters, queries))
         counts.append(scene_counts(detectors[model], scenes, iters, queries))
         print(f"{entry}: " + "  ".join(

@@ -157,8 +157,8 @@ def run(args) -> int:
         keyframe_angle=args.keyframe_angle, keyframe_distance=args.keyframe_distance,
         max_snippets=args.max_snippets, fusion=args.fusion, min_support=args.min_support,
         ray_ratio=args.ray_ratio)
-    # checked before the long part
-    detector.reference_points(scene.resolved(settings, detector.card).queries)
+    settings = scene.resolved(settings, detector.card)      # the card's iters / queries
+    detector.reference_points(settings.queries)  # argument check before the long part
     keys, snippets = scene.plan(capture, settings, detector.card)
     if not snippets:
         gap = scene.snippet_gap(settings, detector.card)
@@ -170,8 +170,7 @@ def run(args) -> int:
     result = scene.run(detector, capture, settings, Progress(not args.quiet))
     threshold = detector.card.score_threshold if args.score_threshold is None \
         else args.score_threshold
-    text = json.dumps(results.to_json(result, result.settings, detector.card, threshold),
-                      indent=1)
+    text = json.dumps(results.to_json(result, settings, detector.card, threshold), indent=1)
     images = visualize.write(result, args.vis) if args.vis is not None else 0
     if args.ply is not None:
         ply.write(args.ply, result.fusion.boxes)

@@ -234,9 +234,9 @@ class Detector:
         when cached); every snippet still gets its own ray encoding.  The views are then
         encoded in the order [cached..., new...]; results do not depend on view order beyond
         float rounding."""
-        iters = _check_count(self.card.run_iters if iters is None else iters, "iters", 1,
-                             MAX_ITERATIONS)
-        reference = self.reference_points(self.card.run_queries if queries is None else queries)
+        iters, queries = self.card.run_setting(iters, queries)
+        iters = _check_count(iters, "iters", 1, MAX_ITERATIONS)
+        reference = self.reference_points(queries)
         if form not in FORMS:
             raise ParqError(f"form must be one of {', '.join(FORMS)}, got {form!r}")
         threshold = self.card.score_threshold if score_threshold is None else score_threshold

@@ -125,6 +125,11 @@ class ModelCard:
         """Queries parq-run uses when not told (as :attr:`run_iters`); cards without: 32."""
         return int(self.raw.get("run", {}).get("queries", DEFAULT_RUN["queries"]))
 
+    def run_setting(self, iters=None, queries=None) -> tuple:
+        """(iterations, queries): those given, the card's run setting for each left None."""
+        return (self.run_iters if iters is None else iters,
+                self.run_queries if queries is None else queries)
+
     @property
     def max_views(self) -> int:
         return int(self.raw["limits"]["max_views"])

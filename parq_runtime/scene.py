@@ -51,7 +51,6 @@ class SceneResult:
     fusion: SceneFusion | None = None
     seconds: float = 0.0
     gap: int = 1          # keyframes between a snippet's views, as run
-    settings: RunSettings | None = None   # as run: iterations and queries resolved
 
 
 def snippet_gap(settings: RunSettings, card) -> int:
@@ -73,18 +72,16 @@ def plan(capture: Capture, settings: RunSettings, card) -> tuple:
 def resolved(settings: RunSettings, card) -> RunSettings:
     """``settings`` with iterations and queries left None taken from the model card's run
     setting (the one its post-processing was chosen for)."""
-    return replace(settings,
-                   iters=card.run_iters if settings.iters is None else settings.iters,
-                   queries=card.run_queries if settings.queries is None else settings.queries)
+    iters, queries = card.run_setting(settings.iters, settings.queries)
+    return replace(settings, iters=iters, queries=queries)
 
 
 def run(detector, capture: Capture, settings: RunSettings, progress=None) -> SceneResult:
     """Detect in every snippet and fuse; ``progress(done, total)`` is called per snippet.
-    The result's ``settings`` are the ones run (iterations and queries resolved)."""
+    Iterations and queries left None are the model card's (``Detector.detect``)."""
     start = time.perf_counter()
-    settings = resolved(settings, detector.card)
     keys, snippets = plan(capture, settings, detector.card)
-    result = SceneResult(capture, [capture.frames[i].name for i in keys], settings=settings,
+    result = SceneResult(capture, [capture.frames[i].name for i in keys],
                          fusion=SceneFusion(
                              up=capture.up,
                              mode=settings.fusion or detector.card.fusion,
