@@ -94,6 +94,18 @@ def write_scannet(folder: pathlib.Path, frames: int = 12, size=(96, 72), seed: i
     return folder
 
 
+def model_with_card(source: pathlib.Path, folder: pathlib.Path, card: dict) -> pathlib.Path:
+    """``folder`` (new): model folder ``source``'s two graphs with ``card`` as its model.json,
+    written as given (unchecked, so that a test can hand the runtime a broken card)."""
+    import json
+
+    folder.mkdir()
+    for name in ("backbone.onnx", "layer.onnx"):
+        (folder / name).write_bytes((source / name).read_bytes())
+    (folder / "model.json").write_text(json.dumps(card))
+    return folder
+
+
 @pytest.fixture
 def scannet_folder(tmp_path):
     return write_scannet(tmp_path / "scene")

@@ -14,7 +14,7 @@ from parq_runtime.detector import Detector
 from parq_runtime.errors import ParqError
 from parq_runtime.model_card import METADATA_KEY
 
-from conftest import tiny_config
+from conftest import model_with_card, tiny_config
 
 
 def test_graphs_name_every_input_and_output_and_carry_the_card(tiny_model):
@@ -58,12 +58,8 @@ def test_fewer_queries_start_from_the_cards_ranking_or_farthest_points(tiny_mode
     plain = Detector(tiny_model)
     np.testing.assert_array_equal(plain.reference_points(5),
                                   learned[farthest_point_sampling(learned, 5)])
-    ranked = tmp_path / "ranked"
-    ranked.mkdir()
-    for f in ("backbone.onnx", "layer.onnx"):
-        (ranked / f).write_bytes((tiny_model / f).read_bytes())
     order = list(range(K))[::-1]
-    (ranked / "model.json").write_text(json.dumps(dict(card, query_order=order)))
+    ranked = model_with_card(tiny_model, tmp_path / "ranked", dict(card, query_order=order))
     det = Detector(ranked)
     np.testing.assert_array_equal(det.reference_points(5), learned[K - 5:])
     np.testing.assert_array_equal(det.reference_points(K), learned)
@@ -82,12 +78,8 @@ def test_snippet_gap_is_written_to_the_card_and_checked(tiny_model, tmp_path):
     1 (cards written before it); one that is not an integer >= 1 is refused, as is a config."""
     card = json.loads((tiny_model / "model.json").read_text())
     assert card["snippets"] == {"gap": 1} and Detector(tiny_model).card.snippet_gap == 1
-    other = tmp_path / "other"
-    other.mkdir()
-    for f in ("backbone.onnx", "layer.onnx"):
-        (other / f).write_bytes((tiny_model / f).read_bytes())
     old = {k: v for k, v in card.items() if k != "snippets"}
-    (other / "model.json").write_text(json.dumps(old))
+    other = model_with_card(tiny_model, tmp_path / "other", old)
     assert Detector(other).card.snippet_gap == 1
     (other / "model.json").write_text(json.dumps(dict(card, snippets={"gap": 3})))
     assert Detector(other).card.snippet_gap == 3
@@ -106,11 +98,8 @@ def test_run_setting_is_written_to_the_card_and_checked(tiny_model, tmp_path):
     the card's, and a value that is not an integer in range is refused, as is a config."""
     card = json.loads((tiny_model / "model.json").read_text())
     assert card["run"] == {"iters": 2, "queries": 32}
-    other = tmp_path / "other"
-    other.mkdir()
-    for f in ("backbone.onnx", "layer.onnx"):
-        (other / f).write_bytes((tiny_model / f).read_bytes())
-    (other / "model.json").write_text(json.dumps({k: v for k, v in card.items() if k != "run"}))
+    other = model_with_card(tiny_model, tmp_path / "other",
+                            {k: v for k, v in card.items() if k != "run"})
     assert (Detector(other).card.run_iters, Detector(other).card.run_queries) == (2, 32)
     (other / "model.json").write_text(json.dumps(dict(card, run={"iters": 1, "queries": 5})))
     det = Detector(other)

@@ -10,7 +10,7 @@ import pytest
 from parq_runtime import cli
 from parq_runtime.results import SCHEMA
 
-from conftest import ROOT, write_scannet
+from conftest import ROOT, model_with_card, write_scannet
 
 BLOCK_TORCH = textwrap.dedent("""
     import sys
@@ -105,11 +105,7 @@ def test_parq_run_spaces_a_snippets_views_by_the_gap(tiny_model, tmp_path):
     assert [s["frames"] for s in data["snippets"]] == [
         [str(i) for i in (s, s + 2, s + 4)] for s in range(10)]
     card = json.loads((tiny_model / "model.json").read_text())
-    model = tmp_path / "model"
-    model.mkdir()
-    for f in ("backbone.onnx", "layer.onnx"):
-        (model / f).write_bytes((tiny_model / f).read_bytes())
-    (model / "model.json").write_text(json.dumps(dict(card, snippets={"gap": 3})))
+    model = model_with_card(tiny_model, tmp_path / "model", dict(card, snippets={"gap": 3}))
     code, stdout, stderr = run_cli(folder, "--model", model, "--queries", 8, "-q")
     assert code == 0, stderr
     data = json.loads(stdout)
@@ -126,11 +122,8 @@ def test_parq_run_defaults_to_the_cards_run_setting(tiny_model, tmp_path):
     flags override it."""
     folder = write_scannet(tmp_path / "scene", frames=6)
     card = json.loads((tiny_model / "model.json").read_text())
-    model = tmp_path / "model"
-    model.mkdir()
-    for f in ("backbone.onnx", "layer.onnx"):
-        (model / f).write_bytes((tiny_model / f).read_bytes())
-    (model / "model.json").write_text(json.dumps(dict(card, run={"iters": 1, "queries": 6})))
+    model = model_with_card(tiny_model, tmp_path / "model",
+                            dict(card, run={"iters": 1, "queries": 6}))
     code, stdout, stderr = run_cli(folder, "--model", model, "-q")
     assert code == 0, stderr
     settings = json.loads(stdout)["settings"]
@@ -179,13 +172,9 @@ def test_bad_model_folders(tiny_model, scannet_folder, tmp_path):
     (broken / "layer.onnx").write_bytes(b"not onnx")
     _one_line_error(*run_cli(scannet_folder, "--model", broken), "layer.onnx",
                     "does not match the model card")
-    old = tmp_path / "old"
-    old.mkdir()
-    for f in ("backbone.onnx", "layer.onnx"):
-        (old / f).write_bytes((tiny_model / f).read_bytes())
     card = json.loads((tiny_model / "model.json").read_text())
     card["format_version"] = 99
-    (old / "model.json").write_text(json.dumps(card))
+    old = model_with_card(tiny_model, tmp_path / "old", card)
     _one_line_error(*run_cli(scannet_folder, "--model", old), "format 99", "export")
     card["format_version"] = json.loads((tiny_model / "model.json").read_text())[
         "format_version"]
