@@ -15,6 +15,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from parq_runtime import fusion as scene_fusion  # not `fusion`: a field below has that name
+from parq_runtime.model_card import DEFAULT_RUN
 
 # Class names of the authors' ScanNet (Scan2CAD) release, in label order; label 9 is no-object.
 SCANNET_CLASSES = ("chair", "table", "cabinet", "trash bin", "bookshelf", "display", "sofa",
@@ -75,9 +76,10 @@ class PARQConfig:
     # wider snippets (parq-train --gap) records its gap here and parq-run uses it
     snippet_gap: int = 1
     # what parq-run runs without --iters / --queries: the setting the post-processing was
-    # chosen for (parq_train.tune); 2 x 32 unless a tuning chose otherwise
-    run_iters: int = 2
-    run_queries: int = 32
+    # chosen for (parq_train.tune); the runtime's default for cards without one (2 x 32) unless
+    # a tuning chose otherwise
+    run_iters: int = DEFAULT_RUN["iters"]
+    run_queries: int = DEFAULT_RUN["queries"]
     extra: dict = field(default_factory=dict, compare=False)  # free-form provenance
 
     feature_stride = 4  # FPN level P2; every level is resized to it
