@@ -91,8 +91,11 @@ class DecoderLayer(nn.Module):
         self.norm2 = nn.LayerNorm(dim)
         self.norm3 = nn.LayerNorm(dim)
 
-    def self_attention(self, x: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
-        """(B, K, C) -> (B, K, C); q = k = x + pos, v = x."""
+    def self_attention(self, x: torch.Tensor, pos: torch.Tensor,
+                       mask: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, K, C) -> (B, K, C); q = k = x + pos, v = x.  ``mask`` (K, K) bool, True where
+        query i may not attend to query j (training's denoising queries, see
+        ``parq_train.denoise``); None: all attend to all, as at run time."""
         B, K, C = x.shape
         H, d = self.heads, C // self.heads
         W, b = self.self_attn.in_proj_weight, self.self_attn.in_proj_bias
@@ -100,7 +103,10 @@ class DecoderLayer(nn.Module):
         q = F.linear(qk, W[:C], b[:C]).view(B, K, H, d).transpose(1, 2) * d ** -0.5
         k = F.linear(qk, W[C:2 * C], b[C:2 * C]).view(B, K, H, d).transpose(1, 2)
         v = F.linear(x, W[2 * C:], b[2 * C:]).view(B, K, H, d).transpose(1, 2)
-        ctx = torch.softmax(q @ k.transpose(-1, -2), -1) @ v
+        scores = q @ k.transpose(-1, -2)
+        if mask is not None:
+            scores = scores.masked_fill(mask, float("-inf"))
+        ctx = torch.softmax(scores, -1) @ v
         return self.self_attn.out_proj(ctx.transpose(1, 2).reshape(B, K, C))
 
     def attention_operands(self, memory: torch.Tensor, cached: bool, fused: bool = False,
@@ -165,20 +171,21 @@ class DecoderLayer(nn.Module):
         ctx = (attn @ values).reshape(B, H, K, -1) @ value_map + value_bias
         return self.multihead_attn.out_proj(ctx.transpose(1, 2).reshape(B, K, C))
 
-    def forward(self, x, pos, operands=None, memory=None, attend=None):
+    def forward(self, x, pos, operands=None, memory=None, attend=None, self_mask=None):
         """x, pos (B, K, C).  Give ``operands`` (fast form), ``attend`` (a function computing
         the cross-attention of x + pos, (B, K, C) -> (B, K, C)) or ``memory`` (B, S, C), in
-        which case nn.MultiheadAttention runs exactly as in the authors' code."""
+        which case nn.MultiheadAttention runs exactly as in the authors' code.  ``self_mask``:
+        see :meth:`self_attention`."""
         if memory is None:
             if attend is None:
                 def attend(y):
                     return self.cross_attention(y, *operands)
-            x = self.norm1(x + self.self_attention(x, pos))
+            x = self.norm1(x + self.self_attention(x, pos, self_mask))
             x = self.norm2(x + attend(x + pos))
         else:
             tgt, p, mem = x.transpose(0, 1), pos.transpose(0, 1), memory.transpose(0, 1)
             q = tgt + p
-            tgt = self.norm1(tgt + self.self_attn(q, q, value=tgt)[0])
+            tgt = self.norm1(tgt + self.self_attn(q, q, value=tgt, attn_mask=self_mask)[0])
             tgt = self.norm2(tgt + self.multihead_attn(tgt + p, mem, value=mem)[0])
             x = tgt.transpose(0, 1)
         return self.norm3(x + self.linear2(F.relu(self.linear1(x))))
@@ -217,11 +224,18 @@ class PARQLayer(nn.Module):
         return self.decoder.attention_operands(memory, cached, fused, token_bias)
 
     def forward(self, query_content, reference_points, operands=None, memory=None,
-                attend=None) -> dict:
+                attend=None, self_mask=None, split=None) -> dict:
+        """``self_mask``: see DecoderLayer.self_attention.  ``split`` K: the heads decode
+        queries [:K] and [K:] apart, so that the heads' GroupNorm statistics of the first K
+        are those of the K alone (training's denoising queries come after them)."""
         pos = self.position_encoder(sine_encoding(reference_points, self.dim_t))
         tokens = self.decoder(query_content, pos, operands=operands, memory=memory,
-                              attend=attend)
-        return self.decode(tokens, reference_points)
+                              attend=attend, self_mask=self_mask)
+        if split is None:
+            return self.decode(tokens, reference_points)
+        parts = [self.decode(tokens[:, :split], reference_points[:, :split]),
+                 self.decode(tokens[:, split:], reference_points[:, split:])]
+        return {k: torch.cat([p[k] for p in parts], 1) for k in parts[0]}
 
     def decode(self, tokens: torch.Tensor, reference_points: torch.Tensor) -> dict:
         x = tokens.transpose(1, 2)                                      # (B, C, K)

@@ -77,9 +77,15 @@ class PARQ(nn.Module):
         return features.permute(0, 1, 3, 4, 2) + self.ray_encoder(camera, T_local_camera)
 
     def forward(self, images, camera, T_local_camera, iterations=None, reference_points=None,
-                form: str = "reference") -> list:
+                form: str = "reference", extra_points=None) -> list:
         """Run the detector on B snippets; returns one dict per iteration (see PARQLayer), plus
         ``reference`` (B, K, 3): the point the iteration started from, metres.
+
+        extra_points (B, D, 3), normalised: training's denoising queries
+        (``parq_train.denoise``), appended after the K queries and iterated with them; the K
+        queries do not attend to them, each attends only to the K queries and itself, and the
+        heads decode them apart, so the K queries' outputs are what they are without them.
+        Outputs then have K + D queries.
 
         form: ``reference`` recomputes the cross-attention keys and values at every iteration
         (the authors' way); ``cached`` projects them once; ``folded`` never projects the memory;
@@ -93,6 +99,14 @@ class PARQ(nn.Module):
             reference_points = self.initial_reference_points()
         ref = reference_points.expand(B, -1, -1) if reference_points.dim() == 2 \
             else reference_points
+        self_mask = split = None
+        if extra_points is not None:
+            K, D = ref.shape[1], extra_points.shape[1]
+            split = K
+            ref = torch.cat([ref, extra_points.to(ref.dtype)], 1)
+            self_mask = torch.ones(K + D, K + D, dtype=torch.bool, device=ref.device)
+            self_mask[:, :K] = False
+            self_mask[K:, K:] = ~torch.eye(D, dtype=torch.bool, device=ref.device)
         tokens = memory.flatten(1, 3)                                  # (B, S, C)
         operands = None
         if form != "reference":
@@ -103,9 +117,10 @@ class PARQ(nn.Module):
             points = denormalize_points(ref, self.config.decoder_scale)
             content = pixel_aligned_features(memory, points, camera, T_camera_local)
             if form == "reference":
-                out = self.layer(content, ref, memory=tokens)
+                out = self.layer(content, ref, memory=tokens, self_mask=self_mask, split=split)
             else:
-                out = self.layer(content, ref, operands=operands)
+                out = self.layer(content, ref, operands=operands, self_mask=self_mask,
+                                 split=split)
             out["reference"] = points
             outputs.append(out)
             ref = out["next_reference_points"].detach()

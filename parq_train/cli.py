@@ -90,6 +90,11 @@ def parser() -> argparse.ArgumentParser:
                         "emulated and slower. Neither run with it beat the demo's float32: 0.02 "
                         "lower F1@0.25 on 120 held-out scenes, level at IoU 0.5 "
                         "(benchmarks/results/spread-models.md); off by default")
+    p.add_argument("--denoise", type=non_negative_float, default=0.0, metavar="SCALE",
+                   help="add one denoising query per target (DN-DETR; beyond the paper's "
+                        "objective, training only: the exported graphs are the same), its "
+                        "reference point the target's center moved by up to SCALE half "
+                        "extents per axis (default 0: none, the paper's objective alone)")
     p.add_argument("--snapshot-every", type=non_negative_int, default=2000,
                    help="also write OUTPUT's stem + '-stepN.pt' every N training steps "
                         "(0: never; default 2000)")
@@ -153,7 +158,8 @@ def run(args, argv) -> int:
                                  iterations=args.iterations, lr=args.lr, log=log,
                                  log_every=250, model=model, snapshot=snapshot,
                                  snapshot_every=args.snapshot_every,
-                                 backbone_lr=args.backbone_lr, form=form, bf16=args.bf16)
+                                 backbone_lr=args.backbone_lr, form=form, bf16=args.bf16,
+                                 denoise_scale=args.denoise)
     trained = time.perf_counter() - start - generated - pretrained
     record = {"command": "parq-train " + " ".join(argv), "seed": args.seed,
               "data": {"generator": "parq-synth", "seed": TRAIN_SEED, "scenes": len(folders),
@@ -162,7 +168,7 @@ def run(args, argv) -> int:
               "pretrain_steps": pre_record["steps"], "pretraining": pre_record,
               "steps": args.steps, "batch": args.batch,
               "iterations": args.iterations, "gap": args.gap, "lr": args.lr,
-              "backbone_lr": args.backbone_lr,
+              "backbone_lr": args.backbone_lr, "denoise": args.denoise,
               "attention": form,
               "precision": "bfloat16 autocast" if args.bf16 else "float32",
               "threads": torch.get_num_threads(),

@@ -21,6 +21,7 @@ from torch import nn
 from parq_export.backbone import FrozenBatchNorm2d
 from parq_export.model import PARQ
 
+from . import denoise
 from .loss import total_loss
 from .progress import minutes
 
@@ -99,7 +100,8 @@ def new_model(config, seed: int, snippets=None) -> PARQ:
 def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_size: int = 4,
           lr: float = 4e-4, iterations: int = 4, log=print, log_every: int = 50,
           model: PARQ | None = None, snapshot=None, snapshot_every: int = 0,
-          backbone_lr: float = 1.0, form: str = "cached", bf16: bool = False) -> tuple:
+          backbone_lr: float = 1.0, form: str = "cached", bf16: bool = False,
+          denoise_scale: float = 0.0) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
 
@@ -110,7 +112,10 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     default ``cached`` is what trained the shipped demo; ``fused`` computes the same in another
     rounding order, faster.  ``bf16`` runs the forward pass under CPU autocast to bfloat16
     (products and convolutions in bfloat16, weights, optimiser and loss in float32): on CPUs
-    with AMX it is faster (see ``parq-train --bf16``); elsewhere it is emulated and slower."""
+    with AMX it is faster (see ``parq-train --bf16``); elsewhere it is emulated and slower.
+    ``denoise_scale`` above 0 adds a denoising query per target, its center moved by up to
+    that many half extents (:mod:`parq_train.denoise`; beyond the paper's objective); 0 trains
+    exactly as before."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     if model is None:
@@ -137,12 +142,23 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
             group["lr"] = group["scale"] * learning_rate(step, steps, lr,
                                                          warmup=min(500, steps // 10))
         images, camera, T_local_camera, targets = to_batch(batch, rng)
+        extra = None
+        if denoise_scale > 0:
+            extra, index = denoise.noised_queries(targets, config.decoder_scale, rng,
+                                                  denoise_scale)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            outputs = model(images, camera, T_local_camera, iterations=iterations, form=form)
+            outputs = model(images, camera, T_local_camera, iterations=iterations, form=form,
+                            extra_points=extra)
         if bf16:
             outputs = [{k: v.float() if v.is_floating_point() else v for k, v in out.items()}
                        for out in outputs]
+        if extra is not None:
+            outputs, noised = denoise.split(outputs, config.num_queries)
         loss, parts = total_loss(outputs, targets, folds, len(config.classes))
+        if extra is not None:
+            dn_loss, dn_parts = denoise.denoise_loss(noised, index, targets, folds)
+            loss = loss + dn_loss
+            parts.update({f"denoise {k}": v for k, v in dn_parts.items()})
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -156,7 +172,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
             log(f"step {step + 1}/{steps}  {minutes(elapsed, step + 1, steps)}  "
                 f"loss {mean['total']:.3f}  "
                 + "  ".join(f"{k} {mean[k]:.3f}" for k in ("center", "size", "rotation",
-                                                           "class")))
+                                                           "class", "denoise center")
+                            if k in mean))
             running = {}
         if snapshot is not None and snapshot_every and (step + 1) % snapshot_every == 0 \
                 and step + 1 < steps:
