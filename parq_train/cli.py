@@ -94,7 +94,13 @@ def parser() -> argparse.ArgumentParser:
                    help="add one denoising query per target (DN-DETR; beyond the paper's "
                         "objective, training only: the exported graphs are the same), its "
                         "reference point the target's center moved by up to SCALE half "
-                        "extents per axis (default 0: none, the paper's objective alone)")
+                        "extents per axis (default 0: none, the paper's objective alone). "
+                        "At 1.0 it raised reach but lowered F1, see docs/demo-experiments.md")
+    p.add_argument("--denoise-class-weight", type=non_negative_float, default=1.0,
+                   metavar="W",
+                   help="weight of the denoising queries' class loss against their box losses "
+                        "(default 1.0; 0: boxes only, so that they cannot teach the class head "
+                        "what the matching calls a duplicate)")
     p.add_argument("--snapshot-every", type=non_negative_int, default=2000,
                    help="also write OUTPUT's stem + '-stepN.pt' every N training steps "
                         "(0: never; default 2000)")
@@ -159,7 +165,8 @@ def run(args, argv) -> int:
                                  log_every=250, model=model, snapshot=snapshot,
                                  snapshot_every=args.snapshot_every,
                                  backbone_lr=args.backbone_lr, form=form, bf16=args.bf16,
-                                 denoise_scale=args.denoise)
+                                 denoise_scale=args.denoise,
+                                 denoise_class_weight=args.denoise_class_weight)
     trained = time.perf_counter() - start - generated - pretrained
     record = {"command": "parq-train " + " ".join(argv), "seed": args.seed,
               "data": {"generator": "parq-synth", "seed": TRAIN_SEED, "scenes": len(folders),
@@ -169,6 +176,7 @@ def run(args, argv) -> int:
               "steps": args.steps, "batch": args.batch,
               "iterations": args.iterations, "gap": args.gap, "lr": args.lr,
               "backbone_lr": args.backbone_lr, "denoise": args.denoise,
+              "denoise_class_weight": args.denoise_class_weight,
               "attention": form,
               "precision": "bfloat16 autocast" if args.bf16 else "float32",
               "threads": torch.get_num_threads(),

@@ -50,10 +50,12 @@ def noised_queries(targets: list, decoder_scale, rng: np.random.Generator,
 
 
 def denoise_loss(outputs: list, index: torch.Tensor, targets: list,
-                 folds_of_class: torch.Tensor) -> tuple:
+                 folds_of_class: torch.Tensor, class_weight: float = 1.0) -> tuple:
     """The matched-query losses of the denoising queries, averaged over iterations and
-    snippets with targets.  outputs: per iteration a dict of the D denoising queries' outputs
-    ((B, D, ...) each); returns (weighted sum, parts as floats)."""
+    snippets with targets, the class term scaled by ``class_weight`` (0: boxes only; see
+    docs/demo-experiments.md for why that is the next thing to try).  outputs: per iteration
+    a dict of the D denoising queries' outputs ((B, D, ...) each); returns (weighted sum,
+    parts as floats, unscaled)."""
     parts = {k: 0.0 for k in WEIGHTS}
     n = 0
     for out in outputs:
@@ -74,7 +76,8 @@ def denoise_loss(outputs: list, index: torch.Tensor, targets: list,
         zero = outputs[0]["logits"].sum() * 0
         return zero, {k: 0.0 for k in WEIGHTS}
     parts = {k: v / n for k, v in parts.items()}
-    total = sum(WEIGHTS[k] * parts[k] for k in WEIGHTS)
+    scale = dict(WEIGHTS, **{"class": WEIGHTS["class"] * class_weight})
+    total = sum(scale[k] * parts[k] for k in WEIGHTS)
     return total, {k: float(v.detach()) for k, v in parts.items()}
 
 

@@ -101,7 +101,7 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
           lr: float = 4e-4, iterations: int = 4, log=print, log_every: int = 50,
           model: PARQ | None = None, snapshot=None, snapshot_every: int = 0,
           backbone_lr: float = 1.0, form: str = "cached", bf16: bool = False,
-          denoise_scale: float = 0.0) -> tuple:
+          denoise_scale: float = 0.0, denoise_class_weight: float = 1.0) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
 
@@ -115,7 +115,7 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     with AMX it is faster (see ``parq-train --bf16``); elsewhere it is emulated and slower.
     ``denoise_scale`` above 0 adds a denoising query per target, its center moved by up to
     that many half extents (:mod:`parq_train.denoise`; beyond the paper's objective); 0 trains
-    exactly as before."""
+    exactly as before.  ``denoise_class_weight`` scales their class loss."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     if model is None:
@@ -156,7 +156,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
             outputs, noised = denoise.split(outputs, config.num_queries)
         loss, parts = total_loss(outputs, targets, folds, len(config.classes))
         if extra is not None:
-            dn_loss, dn_parts = denoise.denoise_loss(noised, index, targets, folds)
+            dn_loss, dn_parts = denoise.denoise_loss(noised, index, targets, folds,
+                                                     denoise_class_weight)
             loss = loss + dn_loss
             parts.update({f"denoise {k}": v for k, v in dn_parts.items()})
         optimizer.zero_grad(set_to_none=True)

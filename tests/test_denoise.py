@@ -82,6 +82,20 @@ def test_denoising_loss_is_zero_for_a_perfect_prediction_and_counts_only_real_ro
     out["center"] = out["center"] + torch.tensor([0.3, 0.0, 0.0])
     total, parts = denoise.denoise_loss([out], index, targets, torch.ones(10, dtype=torch.long))
     assert parts["center"] == pytest.approx(0.1, abs=1e-6)   # mean over 2 rows x 3 axes
+    assert float(total) == pytest.approx(0.5, abs=1e-5)      # weight 5
+
+
+def test_denoising_class_weight_scales_only_the_class_term():
+    targets = [{"labels": torch.tensor([2]), "centers": torch.tensor([[0.0, 0, 2]]),
+                "sizes": torch.ones(1, 3), "rotations": torch.eye(3)[None]}]
+    out = {"logits": torch.zeros(1, 1, 10), "center": torch.tensor([[[0.3, 0.0, 2.0]]]),
+           "size": torch.ones(1, 1, 3), "rotation": torch.eye(3)[None, None]}
+    folds = torch.ones(10, dtype=torch.long)
+    full, parts = denoise.denoise_loss([out], torch.tensor([[0]]), targets, folds)
+    boxes, parts0 = denoise.denoise_loss([out], torch.tensor([[0]]), targets, folds, 0.0)
+    assert parts0 == parts and parts["class"] == pytest.approx(np.log(10), abs=1e-5)
+    assert float(full) - float(boxes) == pytest.approx(np.log(10), abs=1e-5)
+    assert float(boxes) == pytest.approx(5 * 0.1, abs=1e-5)
 
 
 def test_training_with_denoising_queries_learns_them():
