@@ -8,7 +8,7 @@ query runs through the same recurrent iterations as the learned ones (``PARQ.for
 ``extra_points``) and is supervised, at every iteration, with the same losses as a matched
 query but against the target it was made from: no matching decides its target, so from the
 first step every object teaches the layer to move a point that lies on it to its center and
-to name it.  The learned queries cannot see these (a self-attention mask) and run time has
+(unless the class weight is 0) to name it.  The learned queries cannot see these (a self-attention mask) and run time has
 none of them: the exported graphs are unchanged.
 
 Shapes: B snippets, D = the most targets of a snippet in the batch; snippets with fewer
