@@ -22,7 +22,7 @@ import torch.nn.functional as F
 
 from parq_export.ray_encoding import normalize_points
 
-from .loss import WEIGHTS, rotation_loss
+from .loss import WEIGHTS, box_losses
 
 
 def noised_queries(targets: list, decoder_scale, rng: np.random.Generator,
@@ -56,21 +56,20 @@ def denoise_loss(outputs: list, index: torch.Tensor, targets: list,
     docs/demo-experiments.md for why that is the next thing to try).  outputs: per iteration
     a dict of the D denoising queries' outputs ((B, D, ...) each); returns (weighted sum,
     parts as floats, unscaled)."""
+    rows = []   # (snippet, its denoising queries that have a target, those targets), once
+    for b in range(len(targets)):
+        q = torch.nonzero(index[b] >= 0).flatten()
+        if len(q):
+            rows.append((b, q, index[b, q]))
     parts = {k: 0.0 for k in WEIGHTS}
     n = 0
     for out in outputs:
-        for b, target in enumerate(targets):
-            q = torch.nonzero(index[b] >= 0).flatten()
-            if len(q) == 0:
-                continue
-            t = index[b, q]
-            labels = target["labels"][t]
-            parts["class"] = parts["class"] + F.cross_entropy(out["logits"][b][q], labels)
-            parts["center"] = parts["center"] + (out["center"][b][q]
-                                                 - target["centers"][t]).abs().mean()
-            parts["size"] = parts["size"] + (out["size"][b][q] - target["sizes"][t]).abs().mean()
-            parts["rotation"] = parts["rotation"] + rotation_loss(
-                out["rotation"][b][q], target["rotations"][t], folds_of_class[labels])
+        for b, q, t in rows:
+            target = targets[b]
+            losses = box_losses(out, b, q, target, t, folds_of_class)
+            losses["class"] = F.cross_entropy(out["logits"][b][q], target["labels"][t])
+            for k in WEIGHTS:
+                parts[k] = parts[k] + losses[k]
             n += 1
     if n == 0:
         zero = outputs[0]["logits"].sum() * 0

@@ -64,6 +64,15 @@ def rotation_loss(pred: torch.Tensor, target: torch.Tensor, folds: torch.Tensor)
     return ((pred[:, None] - candidates) ** 2).mean((-1, -2)).min(1).values.mean()
 
 
+def box_losses(out: dict, b: int, q, target: dict, t, folds_of_class: torch.Tensor) -> dict:
+    """L1 center, L1 size and rotation loss of batch item b's queries ``q`` against its
+    targets ``t`` (index arrays of one length, at least 1)."""
+    return {"center": (out["center"][b][q] - target["centers"][t]).abs().mean(),
+            "size": (out["size"][b][q] - target["sizes"][t]).abs().mean(),
+            "rotation": rotation_loss(out["rotation"][b][q], target["rotations"][t],
+                                      folds_of_class[target["labels"][t]])}
+
+
 def snippet_loss(out: dict, b: int, target: dict, folds_of_class: torch.Tensor,
                  num_classes: int) -> dict:
     """Losses of one iteration's outputs for batch item b."""
@@ -76,10 +85,7 @@ def snippet_loss(out: dict, b: int, target: dict, folds_of_class: torch.Tensor,
     weight[num_classes] = NO_OBJECT_WEIGHT
     losses = {"class": F.cross_entropy(logits, classes, weight=weight)}
     if len(q):
-        losses["center"] = (out["center"][b][q] - target["centers"][t]).abs().mean()
-        losses["size"] = (out["size"][b][q] - target["sizes"][t]).abs().mean()
-        losses["rotation"] = rotation_loss(out["rotation"][b][q], target["rotations"][t],
-                                           folds_of_class[target["labels"][t]])
+        losses.update(box_losses(out, b, q, target, t, folds_of_class))
     else:
         zero = logits.sum() * 0
         losses.update(center=zero, size=zero, rotation=zero)
