@@ -71,6 +71,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--min-support", type=positive_int, default=None,
                    help="report a scene box only when at least this many snippets detect it "
                         "(default: the model card's; 1 for the authors' checkpoints)")
+    p.add_argument("--mirror", action="store_true",
+                   help="also run each snippet on its mirror image (frames flipped left-right, "
+                        "the world reflected) and fuse both runs' boxes: twice the time; "
+                        "support then counts runs, and --min-support defaults to 2 x the "
+                        "card's (4 for the demo)")
     p.add_argument("--form", choices=("auto", "cached", "folded"), default="auto",
                    help="cross-attention form: auto picks the cheaper exact one (default)")
     p.add_argument("--keyframe-angle", type=non_negative_float, default=15.0,
@@ -156,7 +161,7 @@ def run(args) -> int:
         score_threshold=args.score_threshold, region=not args.all_regions, form=args.form,
         keyframe_angle=args.keyframe_angle, keyframe_distance=args.keyframe_distance,
         max_snippets=args.max_snippets, fusion=args.fusion, min_support=args.min_support,
-        ray_ratio=args.ray_ratio)
+        ray_ratio=args.ray_ratio, mirror=args.mirror)
     settings = scene.resolved(settings, detector.card)      # the card's iters / queries
     detector.reference_points(settings.queries)  # argument check before the long part
     keys, snippets = scene.plan(capture, settings, detector.card)

@@ -20,7 +20,9 @@ A scene box is the cluster of the detections matched to it, summarised by ``mode
 
 ``min_support``: a scene box is reported only when detections from at least that many
 snippets support it; spurious detections rarely recur, real objects seen from several
-keyframes do (1, the authors' protocol, reports every box).
+keyframes do (1, the authors' protocol, reports every box).  With ``parq-run --mirror`` each
+snippet is also run on its mirror image (parq_runtime.mirror), and support counts runs: an
+object two snippets detect both ways has support 4.
 
 On the demo model's 40 validation scenes (2 iterations, 32 queries, each with its best score
 threshold and region; ``parq_train.tune``), for the demo before the current one: best/1
@@ -68,7 +70,7 @@ def problems(mode, min_support, ray_ratio=RAY_RATIO) -> list:
 @dataclass
 class _Cluster:
     members: list        # Box, in the order added
-    snippets: list       # snippet index of each member
+    runs: list           # (snippet index, mirrored) of each member
     fused: object = None
 
     @property
@@ -77,15 +79,16 @@ class _Cluster:
 
     @property
     def support(self) -> int:
-        """Distinct snippets among the members."""
-        return len(set(self.snippets))
+        """Distinct runs among the members: snippets, each counted twice when it was also run
+        mirrored (parq_runtime.mirror) and both runs detected the object."""
+        return len(set(self.runs))
 
 
 @dataclass
 class SceneFusion:
     """Accumulates boxes.  ``boxes`` are the scene boxes with enough support, ``sources`` the
     snippet index of each one's best detection, ``supports`` the number of snippets that
-    detected each."""
+    detected each (of runs, with mirror-image runs: _Cluster.support)."""
 
     iou_threshold: float = MATCH_IOU
     up: tuple = geometry.UP_Z
@@ -99,8 +102,9 @@ class SceneFusion:
         if found:
             raise ParqError("; ".join(found))
 
-    def add(self, detections: list, snippet: int = -1) -> list:
-        """Fuse one snippet's detections; returns the cluster index each detection went to."""
+    def add(self, detections: list, snippet: int = -1, mirrored: bool = False) -> list:
+        """Fuse one snippet's detections (``mirrored``: from its mirror-image run, reflected
+        back); returns the cluster index each detection went to."""
         if not detections:
             return []
         assigned = [-1] * len(detections)
@@ -116,7 +120,7 @@ class SceneFusion:
                 self.clusters.append(_Cluster([], []))
             cluster = self.clusters[assigned[d]]
             cluster.members.append(det)
-            cluster.snippets.append(snippet)
+            cluster.runs.append((snippet, bool(mirrored)))
             cluster.fused = self._summarise(cluster)
         return assigned
 
@@ -142,11 +146,12 @@ class SceneFusion:
 
     @property
     def sources(self) -> list:
-        return [c.snippets[c.best] for c in self._kept()]
+        return [c.runs[c.best][0] for c in self._kept()]
 
     @property
     def supports(self) -> list:
-        """How many snippets detected each of ``boxes``."""
+        """How many runs detected each of ``boxes``: snippets, and their mirror-image runs
+        when there were any (_Cluster.support)."""
         return [c.support for c in self._kept()]
 
 

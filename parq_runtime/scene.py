@@ -9,7 +9,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import keyframes
+from . import keyframes, mirror
 from .detector import FeatureCache
 from .fusion import SceneFusion
 from .readers import Capture
@@ -31,6 +31,7 @@ class RunSettings:
     fusion: str | None = None             # None: the model card's
     min_support: int | None = None        # None: the model card's
     ray_ratio: float | None = None        # None: the model card's
+    mirror: bool = False                  # also run each snippet's mirror image
 
 
 @dataclass
@@ -41,6 +42,7 @@ class SnippetResult:
     boxes: list
     form: str
     seconds: float
+    mirrored: list = field(default_factory=list)   # the mirror run's boxes, reflected back
 
 
 @dataclass
@@ -76,16 +78,28 @@ def resolved(settings: RunSettings, card) -> RunSettings:
     return replace(settings, iters=iters, queries=queries)
 
 
+def min_support(settings: RunSettings, card) -> int:
+    """The fusion's minimum support: the settings', else the card's; with ``mirror`` and no
+    explicit support, 2 x the card's, since support then counts runs, two a snippet (the
+    card's post-processing was chosen without mirror runs).  For the demo that is 4, what its
+    160 validation scenes chose among 1-4 (``benchmarks/mirror_tta.py``)."""
+    if settings.min_support is not None:
+        return settings.min_support
+    return 2 * card.min_support if settings.mirror else card.min_support
+
+
 def run(detector, capture: Capture, settings: RunSettings, progress=None) -> SceneResult:
     """Detect in every snippet and fuse; ``progress(done, total)`` is called per snippet.
-    Iterations and queries left None are the model card's (``Detector.detect``)."""
+    Iterations and queries left None are the model card's (``Detector.detect``).  With
+    ``settings.mirror`` each snippet is also run on its mirror image (twice the time) and both
+    runs' detections are fused (parq_runtime.mirror)."""
     start = time.perf_counter()
     keys, snippets = plan(capture, settings, detector.card)
     result = SceneResult(capture, [capture.frames[i].name for i in keys],
                          fusion=SceneFusion(
                              up=capture.up,
                              mode=settings.fusion or detector.card.fusion,
-                             min_support=settings.min_support or detector.card.min_support,
+                             min_support=min_support(settings, detector.card),
                              ray_ratio=settings.ray_ratio or detector.card.ray_ratio))
     # Overlapping windows share frames: their image features are computed once (streaming).
     # An LRU cache of span + gap - 1 frames never encodes one twice (simulated for 1-9 views,
@@ -98,17 +112,27 @@ def run(detector, capture: Capture, settings: RunSettings, progress=None) -> Sce
     for n, indices in enumerate(snippets):
         t = time.perf_counter()
         frames = [capture.frames[i] for i in indices]
-        found = detector.detect([None if cache is not None and i in cache else f.load_image()
-                                 for i, f in zip(indices, frames)],
-                                np.stack([f.intrinsics for f in frames]),
-                                np.stack([f.cam_to_world for f in frames]),
-                                iters=settings.iters, queries=settings.queries,
-                                score_threshold=settings.score_threshold,
-                                region=settings.region, form=settings.form, up=capture.up,
-                                frame_keys=indices, cache=cache)
+        images = [None if cache is not None and i in cache else f.load_image()
+                  for i, f in zip(indices, frames)]
+        K = np.stack([f.intrinsics for f in frames])
+        T_world_camera = np.stack([f.cam_to_world for f in frames])
+        options = dict(iters=settings.iters, queries=settings.queries,
+                       score_threshold=settings.score_threshold, region=settings.region,
+                       form=settings.form, up=capture.up)
+        found = detector.detect(images, K, T_world_camera, frame_keys=indices, cache=cache,
+                                **options)
         result.fusion.add(found.boxes, n)
+        reflected = []
+        if settings.mirror:
+            if any(image is None for image in images):   # the cache holds unmirrored features
+                images = [f.load_image() for f in frames]
+            seen = detector.detect(*mirror.mirror_snippet(images, K, T_world_camera,
+                                                          capture.up), **options)
+            reflected = [mirror.unmirror_box(b, capture.up) for b in seen.boxes]
+            result.fusion.add(reflected, n, mirrored=True)
         result.snippets.append(SnippetResult(n, [f.name for f in frames], found.T_world_local,
-                                             found.boxes, found.form, time.perf_counter() - t))
+                                             found.boxes, found.form, time.perf_counter() - t,
+                                             reflected))
         if progress is not None:
             progress(n + 1, len(snippets))
     result.seconds = time.perf_counter() - start
