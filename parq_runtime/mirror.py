@@ -14,7 +14,9 @@ A pixel (u, v) of a W-pixel-wide image moves to (W - 1 - u, v) (pixel centres at
 coordinates, geometry's convention), so the principal point goes to W - 1 - cx.  A box the
 network predicts in the mirrored world goes back with the same reflection, its object frame
 reflected across the object's y-z plane (``R_world_object = M @ R' @ F``): a box is symmetric
-under that, so its size is unchanged.
+under that, so its size is unchanged.  The mirrored snippet's local frame is the original's
+with x negated, so the evaluation region (symmetric in x for every card made here and for the
+authors') and the axis-aligned NMS keep the same boxes as they would unmirrored.
 
 ``benchmarks/mirror_tta.py`` measures what running each snippet both ways and fusing the
 detections buys (docs/demo-experiments.md, "Mirror test-time augmentation").
