@@ -16,6 +16,8 @@ mirror image buys, chosen on validation scenes and scored on held-out ones.
 Writes results/mirror_tta.{md,json} (--out).
 
     python benchmarks/mirror_tta.py --val data/val data/val2 --scenes 120
+    python benchmarks/mirror_tta.py --val data/val data/val2 --scenes 40 --size 320x240 \
+        --settings 2x64 --out benchmarks/results/mirror_tta-320
 """
 from __future__ import annotations
 
@@ -125,6 +127,9 @@ def main() -> int:
     p.add_argument("--val", type=pathlib.Path, nargs="+", required=True,
                    help="validation folders of scenes (data/val data/val2)")
     p.add_argument("--scenes", type=int, default=120, help="held-out scenes (seed 3000)")
+    p.add_argument("--size", default="160x120",
+                   help="held-out frame size WxH (160x120, the model's; 320x240, parq-synth's "
+                        "default, which parq-run resizes)")
     p.add_argument("--settings", nargs="+", default=["2x64", "1x64", "4x64"],
                    help="ITERSxQUERIES run with --mirror on the held-out scenes")
     p.add_argument("--out", type=pathlib.Path, default=common.HERE / "results" / "mirror_tta")
@@ -150,8 +155,9 @@ def main() -> int:
     print(f"validation ({len(folders)} scenes, {iters} x {queries}): card without mirror "
           f"{base}; best with mirror {best}", flush=True)
 
-    scenes = tradeoff.held_out_scenes(common.CACHE / "held_out_160x120", args.scenes, 60,
-                                      (160, 120))
+    size = tuple(int(v) for v in args.size.split("x"))
+    scenes = tradeoff.held_out_scenes(common.CACHE / f"held_out_{args.size}", args.scenes, 60,
+                                      size)
     rows = [(f"{iters} x {queries}, card, no mirror",
              *held_out(detector, scenes, iters, queries, None))]
     for entry in args.settings:
@@ -163,7 +169,7 @@ def main() -> int:
 
     lines = [f"Mirror test-time augmentation, {args.model.name}: validation {len(folders)} "
              f"scenes ({', '.join(map(str, args.val))}), held-out {args.scenes} scenes "
-             f"(parq-synth seed 3000, 160x120); machine: {machine['cpu']}, {machine['cores']} "
+             f"(parq-synth seed 3000, {args.size}); machine: {machine['cpu']}, {machine['cores']} "
              f"cores.", "",
              f"Validation at {iters} x {queries}, the card's post-processing without mirror "
              f"runs: F1 {base[0]:.3f} / {base[1]:.3f}. Best of the grid with mirror runs "

@@ -70,7 +70,8 @@ def parser() -> argparse.ArgumentParser:
                         "mean; default: the model card's)")
     p.add_argument("--min-support", type=positive_int, default=None,
                    help="report a scene box only when at least this many snippets detect it "
-                        "(default: the model card's; 1 for the authors' checkpoints)")
+                        "(runs, with --mirror; default: the model card's, doubled with "
+                        "--mirror; 1 for the authors' checkpoints)")
     p.add_argument("--mirror", action="store_true",
                    help="also run each snippet on its mirror image (frames flipped left-right, "
                         "the world reflected) and fuse both runs' boxes: twice the time; "

@@ -88,7 +88,7 @@ class _Cluster:
 class SceneFusion:
     """Accumulates boxes.  ``boxes`` are the scene boxes with enough support, ``sources`` the
     snippet index of each one's best detection, ``supports`` the number of snippets that
-    detected each (of runs, with mirror-image runs: _Cluster.support)."""
+    detected each (with mirror-image runs: the runs, _Cluster.support)."""
 
     iou_threshold: float = MATCH_IOU
     up: tuple = geometry.UP_Z
