@@ -2,7 +2,7 @@
 mirror image buys, chosen on validation scenes and scored on held-out ones.
 
 1. *Validation*: runs the model once on each validation scene with mirror runs (every snippet
-   box kept: threshold 0, no region), then fuses the plain and the mirrored detections under a
+   box kept: threshold 0, no region; ``parq_train.tune.run_once``), then fuses the plain and the mirrored detections under a
    grid of post-processings (score threshold x ray ratio x minimum support, support counting
    runs; the card's evaluation region) and prints the best by F1@0.25 + F1@0.5, beside the
    card's own post-processing without mirror runs, fused from the same detections.  The grid
@@ -33,71 +33,22 @@ import numpy as np
 import common
 import spread
 import tradeoff
+from parq_train import tune
 
 THRESHOLDS = (0.7, 0.75, 0.8, 0.85, 0.9)
 RATIOS = (10.0, 30.0)
 SUPPORTS = (1, 2, 3, 4)
 
 
-def collect(detector, folders: list, iters: int, queries: int) -> list:
-    """Per scene: ([(plain, mirrored) per snippet: lists of (box, local center)], truth, up),
-    every box (score threshold 0, no region), from scene.run with mirror runs."""
-    from parq_runtime import evaluation, geometry, readers, scene
-
-    settings = scene.RunSettings(iters=iters, queries=queries, score_threshold=0.0,
-                                 region=False, mirror=True)
-    out = []
-    for folder in folders:
-        capture = readers.open_capture(folder)
-        result = scene.run(detector, capture, settings)
-        snippets = []
-        for s in result.snippets:
-            T_local_world = geometry.invert(s.T_world_local)
-            snippets.append(tuple([(b, geometry.transform(T_local_world, b.center))
-                                   for b in boxes] for boxes in (s.boxes, s.mirrored)))
-        truth, up = evaluation.load_ground_truth(folder / "boxes.json")
-        out.append((snippets, truth, up))
-    return out
-
-
-def fuse(records: list, threshold: float, region, ratio: float, support: int,
-         mirror: bool) -> list:
-    """(scene boxes, truth, up) per scene, as parq-run fuses them with these settings."""
-    from parq_runtime.fusion import SceneFusion
-
-    def kept(boxes):
-        return [b for b, c in boxes if b.score > threshold
-                and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]]
-
-    pairs = []
-    for snippets, truth, up in records:
-        fusion = SceneFusion(up=up, mode="ray", min_support=support, ray_ratio=ratio)
-        for n, (plain, mirrored) in enumerate(snippets):
-            fusion.add(kept(plain), n)
-            if mirror:
-                fusion.add(kept(mirrored), n, mirrored=True)
-        pairs.append((fusion.boxes, truth, up))
-    return pairs
-
-
-def f1s(pairs: list, classes) -> tuple:
-    from parq_runtime import evaluation
-
-    m = evaluation.evaluate(pairs, classes)
+def f1s(records: list, classes, threshold: float, region, ratio: float, support: int,
+        mirror: bool) -> tuple:
+    """(F1@0.25, F1@0.5) of ``records`` (tune.run_once's with mirror runs) fused as parq-run
+    fuses them with ray fusion and these settings, with or without the mirror runs."""
+    if not mirror:
+        records = [([plain for plain, _ in snippets], truth, up)
+                   for snippets, truth, up in records]
+    m = tune.score(records, threshold, region, classes, "ray", support, ratio, mirror)
     return round(m["0.25"]["f1"], 4), round(m["0.5"]["f1"], 4)
-
-
-def counts_of(pairs: list, classes) -> np.ndarray:
-    """(scenes, 2, 3) spread.py counts of fused scenes."""
-    from parq_runtime import evaluation
-
-    counts = np.zeros((len(pairs), len(spread.THRESHOLDS), 3), dtype=np.int64)
-    for s, (boxes, truth, up) in enumerate(pairs):
-        for t, threshold in enumerate(spread.THRESHOLDS):
-            per_class = evaluation.match_counts(boxes, truth, float(threshold), classes, up)
-            counts[s, t] = [sum(n[k] for n in per_class.values())
-                            for k in ("tp", "predictions", "ground_truth")]
-    return counts
 
 
 def held_out(detector, scenes: list, iters: int, queries: int, chosen: dict | None) -> tuple:
@@ -118,7 +69,7 @@ def held_out(detector, scenes: list, iters: int, queries: int, chosen: dict | No
         truth, up = evaluation.load_ground_truth(folder / "boxes.json")
         pairs.append((result.fusion.boxes, truth, up))
         seconds += [s.seconds for s in result.snippets]
-    return counts_of(pairs, detector.classes), float(np.median(seconds))
+    return spread.counts_of(pairs, detector.classes), float(np.median(seconds))
 
 
 def main() -> int:
@@ -142,15 +93,14 @@ def main() -> int:
     iters, queries = card.run_setting()
     folders = sorted(f for d in args.val for f in d.iterdir() if (f / "boxes.json").exists())
     start = time.perf_counter()
-    records = collect(detector, folders, iters, queries)
+    records = tune.run_once(detector, folders, iters, queries, mirror=True)
     collect_minutes = (time.perf_counter() - start) / 60
-    base = f1s(fuse(records, card.score_threshold, card.eval_region, card.ray_ratio, card.min_support,
-                    False), detector.classes)
+    base = f1s(records, detector.classes, card.score_threshold, card.eval_region,
+               card.ray_ratio, card.min_support, False)
     grid = []
     for t, q, s in itertools.product(THRESHOLDS, RATIOS, SUPPORTS):
         grid.append({"score_threshold": t, "ray_ratio": q, "min_support": s,
-                     "f1": f1s(fuse(records, t, card.eval_region, q, s, True),
-                               detector.classes)})
+                     "f1": f1s(records, detector.classes, t, card.eval_region, q, s, True)})
     best = max(grid, key=lambda g: (sum(g["f1"]), g["f1"][1]))
     print(f"validation ({len(folders)} scenes, {iters} x {queries}): card without mirror "
           f"{base}; best with mirror {best}", flush=True)

@@ -42,14 +42,19 @@ THRESHOLDS = ("0.25", "0.5")
 def scene_counts(detector, scenes: list, iters: int, queries: int) -> np.ndarray:
     """(scenes, thresholds, 3) int: each scene's (true positives, predictions, ground-truth
     boxes), pooled over classes, at the model card's post-processing."""
+    pairs, _ = tradeoff.run_scenes(detector, scenes, iters, queries)
+    return counts_of(pairs, detector.classes)
+
+
+def counts_of(pairs: list, classes) -> np.ndarray:
+    """(scenes, thresholds, 3) int counts, as scene_counts, of (scene boxes, truth, up) per
+    scene."""
     from parq_runtime import evaluation
 
-    pairs, _ = tradeoff.run_scenes(detector, scenes, iters, queries)
-    counts = np.zeros((len(scenes), len(THRESHOLDS), 3), dtype=np.int64)
+    counts = np.zeros((len(pairs), len(THRESHOLDS), 3), dtype=np.int64)
     for s, (boxes, truth, up) in enumerate(pairs):
         for t, threshold in enumerate(THRESHOLDS):
-            per_class = evaluation.match_counts(boxes, truth, float(threshold),
-                                                detector.classes, up)
+            per_class = evaluation.match_counts(boxes, truth, float(threshold), classes, up)
             counts[s, t] = [sum(n[k] for n in per_class.values())
                             for k in ("tp", "predictions", "ground_truth")]
     return counts

@@ -62,11 +62,13 @@ AUTHORS = {"score_threshold": 0.8, "eval_region": list(REGIONS[0]), "fusion": FU
 CHOSEN = ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio")
 
 
-def run_once(detector, folders, iters: int, queries: int, stride: int | None = None) -> list:
-    """Per scene: (snippets as [(T_world_local, boxes with their local centers)], truth, up);
-    ``stride``: keyframes between snippet starts (None: parq-run's default, no overlap)."""
+def run_once(detector, folders, iters: int, queries: int, stride: int | None = None,
+             mirror: bool = False) -> list:
+    """Per scene: (snippets as [(box, its local center)], truth, up); ``stride``: keyframes
+    between snippet starts (None: parq-run's default, no overlap); ``mirror``: each snippet is
+    a pair (plain, mirrored) of such lists, the second from its mirror-image run."""
     settings = scene.RunSettings(iters=iters, queries=queries, score_threshold=0.0,
-                                 region=False, stride=stride)
+                                 region=False, stride=stride, mirror=mirror)
     out = []
     for folder in folders:
         capture = readers.open_capture(folder)
@@ -74,8 +76,11 @@ def run_once(detector, folders, iters: int, queries: int, stride: int | None = N
         snippets = []
         for s in result.snippets:
             T_local_world = geometry.invert(s.T_world_local)
-            local = [geometry.transform(T_local_world, b.center) for b in s.boxes]
-            snippets.append(list(zip(s.boxes, local)))
+
+            def local(boxes):
+                return [(b, geometry.transform(T_local_world, b.center)) for b in boxes]
+
+            snippets.append((local(s.boxes), local(s.mirrored)) if mirror else local(s.boxes))
         truth, up = evaluation.load_ground_truth(folder / "boxes.json")
         out.append((snippets, truth, up))
     return out
@@ -103,18 +108,26 @@ def rank_queries(utility: np.ndarray) -> list:
 
 
 def score(records: list, threshold: float, region, classes, fusion: str = AUTHORS_MODE,
-          min_support: int = AUTHORS_MIN_SUPPORT, ray_ratio: float = RAY_RATIO) -> dict:
+          min_support: int = AUTHORS_MIN_SUPPORT, ray_ratio: float = RAY_RATIO,
+          mirror: bool = False) -> dict:
     """parq-eval metrics of the scenes fused with ``fusion``, ``min_support`` and ``ray_ratio``
     when snippets keep boxes scoring above ``threshold`` whose local centers lie in
-    ``region``."""
+    ``region``; ``mirror``: the records are run_once's with mirror runs, fused as parq-run
+    --mirror fuses them."""
+    def kept(boxes):
+        return [b for b, c in boxes if b.score > threshold
+                and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]]
+
     pairs = []
     for snippets, truth, up in records:
         scene_boxes = SceneFusion(up=up, mode=fusion, min_support=min_support,
                                   ray_ratio=ray_ratio)
         for n, boxes in enumerate(snippets):
-            scene_boxes.add([b for b, c in boxes if b.score > threshold
-                             and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]],
-                            n)
+            if mirror:
+                scene_boxes.add(kept(boxes[0]), n)
+                scene_boxes.add(kept(boxes[1]), n, mirrored=True)
+            else:
+                scene_boxes.add(kept(boxes), n)
         pairs.append((scene_boxes.boxes, truth, up))
     return evaluation.evaluate(pairs, classes)
 
