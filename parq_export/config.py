@@ -80,6 +80,9 @@ class PARQConfig:
     # a tuning chose otherwise
     run_iters: int = DEFAULT_RUN["iters"]
     run_queries: int = DEFAULT_RUN["queries"]
+    # and whether it adds each snippet's mirror-image run (parq-run --mirror); min_support then
+    # counts runs, two a snippet
+    run_mirror: bool = DEFAULT_RUN["mirror"]
     extra: dict = field(default_factory=dict, compare=False)  # free-form provenance
 
     feature_stride = 4  # FPN level P2; every level is resized to it
@@ -113,6 +116,8 @@ class PARQConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 problems.append(f"{name} {value!r} must be an integer >= 1")
+        if not isinstance(self.run_mirror, bool):
+            problems.append(f"run_mirror {self.run_mirror!r} must be True or False")
         if not 0 < self.ray_depth[0] < self.ray_depth[1]:
             problems.append(f"ray_depth {self.ray_depth} must be 0 < near < far")
         if problems:

@@ -168,7 +168,7 @@ def build_card(model: PARQ, checkpoint: ckpt.Checkpoint, source: pathlib.Path,
                         "eval_region": list(c.eval_region), "fusion": c.fusion,
                         "min_support": c.min_support, "ray_ratio": c.ray_ratio},
         "snippets": {"gap": c.snippet_gap},
-        "run": {"iters": c.run_iters, "queries": c.run_queries},
+        "run": {"iters": c.run_iters, "queries": c.run_queries, "mirror": c.run_mirror},
         "limits": {"max_views": MAX_VIEWS, "max_queries": MAX_QUERIES},
         "graphs": {
             "backbone": {"file": "backbone.onnx", "inputs": list(BACKBONE_INPUTS) + ["key_value"],

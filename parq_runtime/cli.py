@@ -70,13 +70,13 @@ def parser() -> argparse.ArgumentParser:
                         "mean; default: the model card's)")
     p.add_argument("--min-support", type=positive_int, default=None,
                    help="report a scene box only when at least this many snippets detect it "
-                        "(runs, with --mirror; default: the model card's, doubled with "
-                        "--mirror; 1 for the authors' checkpoints)")
-    p.add_argument("--mirror", action="store_true",
+                        "(runs, with mirror runs: two a snippet; default: the model card's, "
+                        "scaled to the runs a snippet gets; 1 for the authors' checkpoints)")
+    p.add_argument("--mirror", action=argparse.BooleanOptionalAction, default=None,
                    help="also run each snippet on its mirror image (frames flipped left-right, "
-                        "the world reflected) and fuse both runs' boxes: twice the time; "
-                        "support then counts runs, and --min-support defaults to 2 x the "
-                        "card's (4 for the demo)")
+                        "the world reflected) and fuse both runs' boxes: twice the time, "
+                        "support then counts runs (default: the model card's run setting; "
+                        "--no-mirror for half the time)")
     p.add_argument("--form", choices=("auto", "cached", "folded"), default="auto",
                    help="cross-attention form: auto picks the cheaper exact one (default)")
     p.add_argument("--keyframe-angle", type=non_negative_float, default=15.0,

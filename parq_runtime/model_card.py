@@ -18,8 +18,9 @@ from .errors import ParqError
 CARD_FORMAT = "parq-onnx-model"
 CARD_VERSION = 2  # 2: graphs pass the memory in factored form
 METADATA_KEY = "parq.model_card"
-# parq-run's iterations and queries for a card without a "run" entry (written before it existed)
-DEFAULT_RUN = {"iters": 2, "queries": 32}
+# parq-run's iterations, queries and mirror runs for a card without a "run" entry (written
+# before it existed) or without one of its keys
+DEFAULT_RUN = {"iters": 2, "queries": 32, "mirror": False}
 MAX_ITERATIONS = 1000   # recurrent iterations a run may ask for (the detector checks it)
 REQUIRED = ("classes", "mean_sizes", "image", "feature", "decoder", "reference_points",
             "postprocess", "graphs", "limits", "config")
@@ -125,6 +126,19 @@ class ModelCard:
         """Queries parq-run uses when not told (as :attr:`run_iters`); cards without: 32."""
         return int(self.raw.get("run", {}).get("queries", DEFAULT_RUN["queries"]))
 
+    @property
+    def run_mirror(self) -> bool:
+        """Whether parq-run also runs each snippet's mirror image when not told
+        (``--mirror`` / ``--no-mirror``): the setting the post-processing was chosen for; its
+        ``min_support`` then counts runs, two a snippet (parq_runtime.scene.min_support).
+        Cards without it: no."""
+        return bool(self.raw.get("run", {}).get("mirror", DEFAULT_RUN["mirror"]))
+
+    @property
+    def runs_per_snippet(self) -> int:
+        """Runs a snippet gets at the card's run setting: 2 with mirror runs, else 1."""
+        return 2 if self.run_mirror else 1
+
     def run_setting(self, iters=None, queries=None) -> tuple:
         """(iterations, queries): those given, the card's run setting for each left None."""
         return (self.run_iters if iters is None else iters,
@@ -219,4 +233,8 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
         if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= limit:
             raise ParqError(f"{path}: run.{key} must be an integer from 1 to {limit} (the "
                             f"default run setting), got {value!r}")
+    value = run.get("mirror", DEFAULT_RUN["mirror"])
+    if not isinstance(value, bool):
+        raise ParqError(f"{path}: run.mirror must be true or false (whether the default run "
+                        f"adds mirror-image runs), got {value!r}")
     return card

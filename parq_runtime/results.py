@@ -8,10 +8,10 @@
                    "keyframe_angle_deg", "keyframe_distance_m"},
       "capture":  {"path", "format", "up", "frames", "keyframes", "notes"},
       "snippets": [{"index", "frames": [names], "T_world_local": 4x4, "form", "seconds",
-                    "boxes": [box, ...], "mirrored_boxes": [box, ...] (only with --mirror:
+                    "boxes": [box, ...], "mirrored_boxes": [box, ...] (only with mirror runs:
                     the mirror-image run's boxes, reflected back)}],
       "scene":    {"boxes": [box + "snippet": index of the snippet it came from, "support":
-                   how many snippets (runs, with --mirror) detected it]},
+                   how many snippets (runs, with mirror runs) detected it]},
       "seconds":  total
     }
 
@@ -39,7 +39,7 @@ def to_json(scene, settings, card, score_threshold: float) -> dict:
                          "T_world_local": np.round(s.T_world_local, 8).tolist(),
                          "form": s.form, "seconds": round(s.seconds, 4),
                          "boxes": [b.to_json() for b in s.boxes]})
-        if settings.mirror:
+        if scene.mirror:
             snippets[-1]["mirrored_boxes"] = [b.to_json() for b in s.mirrored]
     fused = [dict(b.to_json(), snippet=int(src), support=int(n))
              for b, src, n in zip(scene.fusion.boxes, scene.fusion.sources,
@@ -54,7 +54,7 @@ def to_json(scene, settings, card, score_threshold: float) -> dict:
                      "gap": scene.gap,
                      "score_threshold": score_threshold, "region": settings.region,
                      "fusion": scene.fusion.mode, "min_support": scene.fusion.min_support,
-                     "ray_ratio": scene.fusion.ray_ratio, "mirror": settings.mirror,
+                     "ray_ratio": scene.fusion.ray_ratio, "mirror": scene.mirror,
                      "form": settings.form, "keyframe_angle_deg": settings.keyframe_angle,
                      "keyframe_distance_m": settings.keyframe_distance},
         "capture": {"path": str(scene.capture.path), "format": scene.capture.format,

@@ -31,7 +31,8 @@ class RunSettings:
     fusion: str | None = None             # None: the model card's
     min_support: int | None = None        # None: the model card's
     ray_ratio: float | None = None        # None: the model card's
-    mirror: bool = False                  # also run each snippet's mirror image
+    mirror: bool | None = None            # also run each snippet's mirror image; None: the
+                                          # model card's run setting
 
 
 @dataclass
@@ -53,6 +54,7 @@ class SceneResult:
     fusion: SceneFusion | None = None
     seconds: float = 0.0
     gap: int = 1          # keyframes between a snippet's views, as run
+    mirror: bool = False  # whether each snippet was also run on its mirror image
 
 
 def snippet_gap(settings: RunSettings, card) -> int:
@@ -72,31 +74,40 @@ def plan(capture: Capture, settings: RunSettings, card) -> tuple:
 
 
 def resolved(settings: RunSettings, card) -> RunSettings:
-    """``settings`` with iterations and queries left None taken from the model card's run
-    setting (the one its post-processing was chosen for)."""
+    """``settings`` with iterations, queries and mirror runs left None taken from the model
+    card's run setting (the one its post-processing was chosen for)."""
     iters, queries = card.run_setting(settings.iters, settings.queries)
-    return replace(settings, iters=iters, queries=queries)
+    return replace(settings, iters=iters, queries=queries, mirror=uses_mirror(settings, card))
+
+
+def uses_mirror(settings: RunSettings, card) -> bool:
+    """Whether each snippet is also run on its mirror image: the settings' choice, else the
+    card's run setting."""
+    return card.run_mirror if settings.mirror is None else bool(settings.mirror)
 
 
 def min_support(settings: RunSettings, card) -> int:
-    """The fusion's minimum support: the settings', else the card's; with ``mirror`` and no
-    explicit support, 2 x the card's, since support then counts runs, two a snippet (the
-    card's post-processing was chosen without mirror runs).  For the demo that is 4, what its
-    160 validation scenes chose among 1-4 (``benchmarks/mirror_tta.py``)."""
+    """The fusion's minimum support: the settings', else the card's scaled to the runs a
+    snippet gets, since support counts runs (two a snippet with mirror runs) and the card's
+    counts them at its own run setting.  A card chosen without mirror runs asks twice its
+    support of a mirror run; one chosen with them (the demo: 4) half of it, rounded up (2),
+    of a run without."""
     if settings.min_support is not None:
         return settings.min_support
-    return 2 * card.min_support if settings.mirror else card.min_support
+    runs = 2 if uses_mirror(settings, card) else 1
+    return -(-card.min_support * runs // card.runs_per_snippet)
 
 
 def run(detector, capture: Capture, settings: RunSettings, progress=None) -> SceneResult:
     """Detect in every snippet and fuse; ``progress(done, total)`` is called per snippet.
-    Iterations and queries left None are the model card's (``Detector.detect``).  With
-    ``settings.mirror`` each snippet is also run on its mirror image (twice the time) and both
+    Iterations, queries and mirror runs left None are the model card's.  With mirror runs
+    each snippet is also run on its mirror image (twice the time) and both
     runs' detections are fused (parq_runtime.mirror)."""
     start = time.perf_counter()
+    settings = replace(settings, mirror=uses_mirror(settings, detector.card))
     keys, snippets = plan(capture, settings, detector.card)
     result = SceneResult(capture, [capture.frames[i].name for i in keys],
-                         fusion=SceneFusion(
+                         mirror=settings.mirror, fusion=SceneFusion(
                              up=capture.up,
                              mode=settings.fusion or detector.card.fusion,
                              min_support=min_support(settings, detector.card),

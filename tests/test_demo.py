@@ -28,6 +28,9 @@ def test_demo_folder_is_small_and_its_card_says_how_it_was_made():
     tuning = card["extra"]["postprocess_tuning"]
     for key in ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio"):
         assert tuning["chosen"][key] == card["postprocess"][key], key
+    # the run setting parq-run uses by default is the one the post-processing was chosen for
+    assert (tuning["iters"], tuning["queries"], tuning.get("mirror", False)) == (
+        card["run"]["iters"], card["run"]["queries"], card["run"].get("mirror", False))
     for role in ("backbone", "layer"):
         path = DEMO / card["graphs"][role]["file"]
         assert hashlib.sha256(path.read_bytes()).hexdigest() == card["graphs"][role]["sha256"]

@@ -93,14 +93,16 @@ def test_snippet_gap_is_written_to_the_card_and_checked(tiny_model, tmp_path):
 
 
 def test_run_setting_is_written_to_the_card_and_checked(tiny_model, tmp_path):
-    """The card records parq-run's default iterations and queries (2 x 32 unless tuned);
-    a card without them reads as 2 x 32 (cards written before), detect() without them uses
-    the card's, and a value that is not an integer in range is refused, as is a config."""
+    """The card records parq-run's default iterations, queries and mirror runs (2 x 32, none,
+    unless tuned); a card without them reads as 2 x 32 without mirror runs (cards written
+    before), detect() without them uses the card's, and a value that is not an integer in
+    range (or for mirror, a boolean) is refused, as is a config."""
     card = json.loads((tiny_model / "model.json").read_text())
-    assert card["run"] == {"iters": 2, "queries": 32}
+    assert card["run"] == {"iters": 2, "queries": 32, "mirror": False}
     other = model_with_card(tiny_model, tmp_path / "other",
                             {k: v for k, v in card.items() if k != "run"})
     assert (Detector(other).card.run_iters, Detector(other).card.run_queries) == (2, 32)
+    assert Detector(other).card.run_mirror is False
     (other / "model.json").write_text(json.dumps(dict(card, run={"iters": 1, "queries": 5})))
     det = Detector(other)
     rng = np.random.default_rng(3)
@@ -116,9 +118,16 @@ def test_run_setting_is_written_to_the_card_and_checked(tiny_model, tmp_path):
         (other / "model.json").write_text(json.dumps(dict(card, run=bad)))
         with pytest.raises(ParqError, match=r"run\.(iters|queries) must be an integer"):
             Detector(other)
+    for bad in ("yes", 1, None):
+        (other / "model.json").write_text(json.dumps(dict(card, run={"iters": 2,
+                                                                     "mirror": bad})))
+        with pytest.raises(ParqError, match=r"run\.mirror must be true or false"):
+            Detector(other)
     assert tiny_config().replace(run_queries=64).run_queries == 64
     with pytest.raises(ValueError, match="run_iters"):
         tiny_config().replace(run_iters=0)
+    with pytest.raises(ValueError, match="run_mirror"):
+        tiny_config().replace(run_mirror="no")
 
 
 def test_views_resized_in_parallel_equal_one_at_a_time(tiny_model):

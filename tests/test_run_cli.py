@@ -134,6 +134,33 @@ def test_parq_run_defaults_to_the_cards_run_setting(tiny_model, tmp_path):
     assert (settings["iters"], settings["queries"]) == (3, 4)
 
 
+def test_parq_run_follows_the_cards_mirror_setting_and_scales_its_support(tiny_model,
+                                                                          tmp_path):
+    """A card tuned with mirror runs makes them parq-run's default; its support counts runs,
+    so --no-mirror halves it (rounded up) and a card tuned without doubles it for --mirror;
+    --min-support is taken as given either way."""
+    folder = write_scannet(tmp_path / "scene", frames=6)
+    card = json.loads((tiny_model / "model.json").read_text())
+    with_mirror = model_with_card(tiny_model, tmp_path / "mirror", dict(
+        card, run=dict(card["run"], mirror=True),
+        postprocess=dict(card["postprocess"], min_support=3)))
+
+    def settings(model, *flags):
+        code, stdout, stderr = run_cli(folder, "--model", model, "-q", *flags)
+        assert code == 0, stderr
+        out = json.loads(stdout)
+        assert all(("mirrored_boxes" in s) == out["settings"]["mirror"]
+                   for s in out["snippets"])
+        return out["settings"]["mirror"], out["settings"]["min_support"]
+
+    support = card["postprocess"]["min_support"]
+    assert settings(tiny_model) == (False, support)
+    assert settings(tiny_model, "--mirror") == (True, 2 * support)
+    assert settings(with_mirror) == (True, 3)
+    assert settings(with_mirror, "--no-mirror") == (False, 2)
+    assert settings(with_mirror, "--no-mirror", "--min-support", 3) == (False, 3)
+
+
 def _one_line_error(code, stdout, stderr, *needles):
     assert code == 2, (code, stderr)
     assert "Traceback" not in stderr
