@@ -144,6 +144,11 @@ class SceneFusion:
     def boxes(self) -> list:
         return [c.fused for c in self._kept()]
 
+    def boxes_with_support(self, min_support: int) -> list:
+        """The scene boxes that ``min_support`` would keep: the clusters do not depend on it
+        (it only filters them), so one fusion answers for every support (parq_train.tune)."""
+        return [c.fused for c in self.clusters if c.support >= min_support]
+
     @property
     def sources(self) -> list:
         return [c.runs[c.best][0] for c in self._kept()]

@@ -106,6 +106,37 @@ def test_tune_picks_the_threshold_and_region_that_separate_true_from_false_boxes
     assert everything["f1@0.25"] == 0.5     # 1 of 3 predictions right, the one box found
 
 
+def test_tune_with_mirror_runs_counts_both_runs_and_scores_alike_in_any_number_of_jobs():
+    """Mirror records: each snippet is (plain, mirrored).  The chair is found by both runs of
+    the one snippet, a false box by the plain run only; support 2 (runs) keeps the chair
+    alone.  The table is the same row for row in 1 or 2 processes and as each candidate
+    scored by itself (one fusion serves every support)."""
+    from parq_runtime.boxes import Box
+    from parq_runtime.geometry import box_corners
+    from parq_train import tune
+
+    def box(center, score):
+        c, s, R = np.asarray(center, float), np.array([0.5, 0.8, 0.5]), np.eye(3)
+        return Box(c, s, R, 0.0, 0, "chair", score, box_corners(c, s, R)), c
+
+    truth = [box([0.0, 0.0, 1.0], 1.0)[0]]
+    plain = [box([0.0, 0.0, 1.0], 0.9), box([1.2, 0.0, 1.5], 0.9)]
+    mirrored = [box([0.02, 0.0, 1.05], 0.85)]
+    records = [([(plain, mirrored)], truth, (0.0, 0.0, 1.0))]
+    grid = dict(thresholds=(0.3, 0.95), regions=tune.REGIONS[-1:],
+                fusions=tune.MIRROR_FUSIONS, mirror=True)
+    best, table = tune.select(records, ["chair"], **grid)
+    assert (best["min_support"], best["f1@0.25"], best["score_threshold"]) == (2, 1.0, 0.3)
+    ones = next(r for r in table if r["min_support"] == 1 and r["fusion"] == "best")
+    assert ones["f1@0.25"] == 0.6667             # the false box is reported: 2 / 3
+    assert all(r["f1@0.25"] == 0.0 for r in table if r["min_support"] > 2)
+    assert tune.select(records, ["chair"], jobs=2, **grid) == (best, table)
+    assert table == [tune.candidate(records, ["chair"], r["score_threshold"],
+                                    r["eval_region"], r["fusion"], r["min_support"],
+                                    r["ray_ratio"], mirror=True) for r in table]
+    assert {(r["fusion"], r["min_support"]) for r in table} >= {("ray", 4), ("best", 1)}
+
+
 def test_tune_ranks_queries_by_their_true_and_false_detections():
     """Query 2 finds the chair twice; query 0 once and misfires twice; query 1 only
     misfires (a table box on the chair, and a chair far away); query 3 finds it once but
@@ -361,10 +392,16 @@ def test_tune_a_model_folder_writes_a_new_folder_with_the_choice(tiny_model, tmp
     chosen = card.raw["extra"]["postprocess_tuning"]["chosen"]
     for key in tune.CHOSEN:
         assert card.raw["postprocess"][key] == chosen[key]
-    assert card.raw["run"] == {"iters": 2, "queries": 8}   # the setting it was tuned for
+    assert card.raw["run"] == {"iters": 2, "queries": 8, "mirror": False}  # as tuned
     assert card.raw["query_order"] == json.loads((tiny_model / "model.json").read_text())[
         "query_order"]
     assert tune.main([str(tiny_model), "--data", str(tmp_path / "val"), "-o", str(out)]) == 2
+    mirrored = tmp_path / "tuned-mirror"
+    assert tune.main([str(tiny_model), "--data", str(tmp_path / "val"), "-o", str(mirrored),
+                      "--queries", "8", "--mirror", "--jobs", "2"]) == 0
+    card = model_card.load(mirrored)
+    assert card.raw["run"] == {"iters": 2, "queries": 8, "mirror": True}
+    assert card.raw["extra"]["postprocess_tuning"]["mirror"] is True
 
 
 def test_tune_pools_several_validation_folders(tmp_path):
