@@ -24,6 +24,9 @@ does), and from those detections:
   (the detection moved by it, nothing else changed), and with the centre exact. What F1 gains
   from removing a part is what that part costs.
 
+It analyses each snippet's plain run: no mirror runs, and a card chosen with them has its
+support scaled to one run a snippet, as parq-run --no-mirror does (:func:`support_of`).
+
     python benchmarks/error_analysis.py [--model models/parq-demo] [--scenes 40]
 """
 from __future__ import annotations
@@ -68,7 +71,7 @@ def run_scene(detector, folder: pathlib.Path, iters: int, queries: int) -> dict:
     from parq_runtime.iou import iou_matrix
 
     settings = scene.RunSettings(iters=iters, queries=queries, score_threshold=0.0,
-                                 region=False)
+                                 region=False, mirror=False)
     result = scene.run(detector, readers.open_capture(folder), settings)
     truth, up = evaluation.load_ground_truth(folder / "boxes.json")
     reach, visible, masks, snippets = np.zeros(len(truth)), np.zeros(len(truth)), {}, []
@@ -84,6 +87,13 @@ def run_scene(detector, folder: pathlib.Path, iters: int, queries: int) -> dict:
             "poses": poses}
 
 
+def support_of(card) -> int:
+    """The card's minimum support for plain runs, as parq-run --no-mirror uses it."""
+    from parq_runtime import scene
+
+    return scene.min_support(scene.RunSettings(mirror=False), card)
+
+
 def one_class(box):
     return dataclasses.replace(box, label=0, class_name="object")
 
@@ -95,7 +105,7 @@ def scores(scenes: list, card, classes, seen: float) -> dict:
 
     def f1(records, names):
         m = tune.score(records, card.score_threshold, card.eval_region, names, card.fusion,
-                       card.min_support, card.ray_ratio)
+                       support_of(card), card.ray_ratio)
         return {t: {k: round(m[t][k], 4) for k in ("precision", "recall", "f1")} for t in m}
 
     every = [(s["snippets"], s["truth"], s["up"]) for s in scenes]
@@ -125,7 +135,7 @@ def stages(scenes: list, card, classes) -> dict:
     out = {"any score": {"recall": round(float(np.mean(np.concatenate(
                [s["reach"] for s in scenes]) >= IOUS[0])), 4)},
            f"score > {card.score_threshold}": {"recall": round(above / max(truth, 1), 4)}}
-    for support in sorted({1, card.min_support}):
+    for support in sorted({1, support_of(card)}):
         m = tune.score(records, card.score_threshold, card.eval_region, classes, card.fusion,
                        support, card.ray_ratio)[str(IOUS[0])]
         out[f"fused ({card.fusion}), support {support}"] = {
@@ -182,7 +192,7 @@ def ray_errors(scenes: list, card, classes, radius: float = 1.0) -> dict:
     f1 = {}
     for fix in RAY_FIXES:
         m = tune.score(records[fix], card.score_threshold, card.eval_region, classes,
-                       card.fusion, card.min_support, card.ray_ratio)
+                       card.fusion, support_of(card), card.ray_ratio)
         f1[fix] = {t: round(m[t]["f1"], 4) for t in m}
     return {"matched": len(along), "median_along": round(float(np.median(along)), 4) if along
             else None, "median_across": round(float(np.median(across)), 4) if across else None,

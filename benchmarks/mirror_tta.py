@@ -6,8 +6,9 @@ mirror image buys, chosen on validation scenes and scored on held-out ones.
    grid of post-processings (score threshold x ray ratio x minimum support, support counting
    runs; the card's evaluation region) and prints the best by F1@0.25 + F1@0.5, beside the
    card's own post-processing without mirror runs, fused from the same detections.  The grid
-   is the card's neighbourhood, not parq_train.tune's full grid (ray fusion only, one region;
-   40 candidates): the full grid with mirror runs takes over an hour on 2 cores.
+   is the card's neighbourhood (ray fusion only, one region; 40 candidates), the question
+   this script was written to answer before the card had mirror runs; the full grid is
+   ``python -m parq_train.tune MODEL --mirror``, which made the demo's card.
 2. *Held out*: ``parq-run``'s own pipeline (``scene.run``) on the held-out scenes (parq-synth
    seed 3000, tradeoff.py's cache) with the card's post-processing and no mirror, then with
    ``--mirror`` and the threshold, ratio and support the validation chose, at --settings,
@@ -53,11 +54,11 @@ def f1s(records: list, classes, threshold: float, region, ratio: float, support:
 
 def held_out(detector, scenes: list, iters: int, queries: int, chosen: dict | None) -> tuple:
     """(counts, seconds per snippet) of parq-run's pipeline on the held-out scenes: the card's
-    post-processing without mirror runs (``chosen`` None), else ``--mirror`` with the chosen
-    threshold, ray ratio and support."""
+    post-processing without mirror runs (``chosen`` None; parq-run --no-mirror), else
+    ``--mirror`` with the chosen threshold, ray ratio and support."""
     from parq_runtime import evaluation, readers, scene
 
-    settings = scene.RunSettings(iters=iters, queries=queries)
+    settings = scene.RunSettings(iters=iters, queries=queries, mirror=False)
     if chosen is not None:
         settings = scene.RunSettings(iters=iters, queries=queries, mirror=True,
                                      score_threshold=chosen["score_threshold"],
@@ -95,8 +96,10 @@ def main() -> int:
     start = time.perf_counter()
     records = tune.run_once(detector, folders, iters, queries, mirror=True)
     collect_minutes = (time.perf_counter() - start) / 60
+    from parq_runtime import scene
+
     base = f1s(records, detector.classes, card.score_threshold, card.eval_region,
-               card.ray_ratio, card.min_support, False)
+               card.ray_ratio, scene.min_support(scene.RunSettings(mirror=False), card), False)
     grid = []
     for t, q, s in itertools.product(THRESHOLDS, RATIOS, SUPPORTS):
         grid.append({"score_threshold": t, "ray_ratio": q, "min_support": s,

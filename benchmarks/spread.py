@@ -18,10 +18,12 @@ Writes results/spread.{md,json} (--out).  F1 here is parq-eval's, pooled over sc
 
 A model may name its own setting, MODEL:ITERSxQUERIES, to compare settings of one model the
 same way (the default is --iters x --queries where given, else the model card's run setting,
-what parq-run runs by default; the table names each entry's setting):
+what parq-run runs by default; the table names each entry's setting), and end in :mirror or
+:no-mirror to add or leave out mirror runs (default: the card's run setting):
 
     python benchmarks/spread.py models/parq-demo work/s1/model --scenes 120
     python benchmarks/spread.py models/parq-demo:1x32 models/parq-demo:4x32 --scenes 120
+    python benchmarks/spread.py models/parq-demo:no-mirror models/parq-demo --scenes 120
 """
 from __future__ import annotations
 
@@ -39,10 +41,12 @@ import tradeoff
 THRESHOLDS = ("0.25", "0.5")
 
 
-def scene_counts(detector, scenes: list, iters: int, queries: int) -> np.ndarray:
+def scene_counts(detector, scenes: list, iters: int, queries: int,
+                 mirror: bool | None = None) -> np.ndarray:
     """(scenes, thresholds, 3) int: each scene's (true positives, predictions, ground-truth
-    boxes), pooled over classes, at the model card's post-processing."""
-    pairs, _ = tradeoff.run_scenes(detector, scenes, iters, queries)
+    boxes), pooled over classes, at the model card's post-processing (``mirror`` None: and
+    its mirror runs)."""
+    pairs, _ = tradeoff.run_scenes(detector, scenes, iters, queries, mirror=mirror)
     return counts_of(pairs, detector.classes)
 
 
@@ -101,8 +105,8 @@ def markdown(models: list, settings: list, rows: list, args) -> str:
         f"F1@{t} | 90% interval | blocks of {args.block} | vs first, paired | ahead"
         for t in THRESHOLDS) + " |"
     lines += [head, "|---" * (2 + 5 * len(THRESHOLDS)) + "|"]
-    for model, (iters, queries), row in zip(models, settings, rows):
-        cells = [model, f"{iters} x {queries}"]
+    for model, (iters, queries, mirror), row in zip(models, settings, rows):
+        cells = [model, f"{iters} x {queries}" + (", mirror runs" if mirror else "")]
         for t in THRESHOLDS:
             e = row[t]
             lo, hi = e["interval90"]
@@ -119,13 +123,18 @@ def markdown(models: list, settings: list, rows: list, args) -> str:
 
 
 def parse_entry(entry: str, iters: int | None, queries: int | None) -> tuple:
-    """'MODEL' or 'MODEL:ITERSxQUERIES' -> (model folder, iterations, queries); without a
-    setting, ``iters`` and ``queries`` (None: the model card's run setting)."""
+    """'MODEL[:ITERSxQUERIES][:mirror|:no-mirror]' -> (model folder, iterations, queries,
+    mirror runs); without a setting, ``iters`` and ``queries``, without a mirror suffix None
+    (None: the model card's run setting)."""
+    mirror = None
+    model, _, suffix = entry.rpartition(":")
+    if model and suffix in ("mirror", "no-mirror"):
+        entry, mirror = model, suffix == "mirror"
     model, _, setting = entry.rpartition(":")
     if model and re.fullmatch(r"\d+x\d+", setting):
         i, q = setting.split("x")
-        return model, int(i), int(q)
-    return entry, iters, queries
+        return model, int(i), int(q), mirror
+    return entry, iters, queries, mirror
 
 
 def main():
@@ -157,12 +166,13 @@ def main():
     scenes, _ = tradeoff.scenes_from_arguments(args)
     detectors, counts, settings = {}, [], []
     for entry in args.models:
-        model, iters, queries = parse_entry(entry, args.iters, args.queries)
+        model, iters, queries, mirror = parse_entry(entry, args.iters, args.queries)
         if model not in detectors:
             detectors[model] = Detector(model, threads=args.threads)
         iters, queries = detectors[model].card.run_setting(iters, queries)
-        settings.append((iters, queries))
-        counts.append(scene_counts(detectors[model], scenes, iters, queries))
+        mirror = detectors[model].card.run_mirror if mirror is None else mirror
+        settings.append((iters, queries, mirror))
+        counts.append(scene_counts(detectors[model], scenes, iters, queries, mirror))
         print(f"{entry}: " + "  ".join(
             f"F1@{t} {float(f1(counts[-1][:, i].sum(axis=0))):.3f}"
             for i, t in enumerate(THRESHOLDS)), file=sys.stderr, flush=True)
@@ -173,7 +183,8 @@ def main():
     out.with_suffix(".json").write_text(json.dumps(
         {"scenes": args.scenes, "size": args.size, "resamples": args.resamples,
          "block": args.block, "models": args.models,
-         "settings": [{"iters": i, "queries": q} for i, q in settings], "rows": rows,
+         "settings": [{"iters": i, "queries": q, "mirror": m} for i, q, m in settings],
+         "rows": rows,
          "scene_counts": {m: c.tolist() for m, c in zip(args.models, counts)}}, indent=1))
     print(text)
 

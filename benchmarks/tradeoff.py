@@ -4,8 +4,9 @@ Generates --scenes scenes with parq-synth seed 3000 (training used seed 1000, va
 so no scene is shared), runs parq-run's pipeline (keyframes, 3-view snippets, scene fusion) at
 iterations 1, 2, 4, 8 x queries 16, 32, 64, 128 and the learned count, and reports scene-level
 F1 at IoU 0.25 / 0.5 / 0.7 (parq-eval's protocol, pooled over scenes) and the median latency per
-snippet (reading its frames included, after one warm-up pass over the scenes).  Writes
-results/tradeoff.{md,csv,json,png}.
+snippet (reading its frames included, after one warm-up pass over the scenes), with the model
+card's post-processing and, unless --mirror / --no-mirror say otherwise, its mirror runs.
+Writes results/tradeoff.{md,csv,json,png}.
 
     python benchmarks/tradeoff.py [--model models/parq-demo] [--scenes 40]
     python benchmarks/tradeoff.py --latency-from benchmarks/results/tradeoff-mean.json
@@ -61,15 +62,17 @@ def held_out_scenes(folder: pathlib.Path, scenes: int, frames: int, size) -> lis
     return [folder / scene_name(k) for k in range(scenes)]
 
 
-def run_scenes(detector, scenes, iters, queries, score_threshold=None, gap=None) -> tuple:
+def run_scenes(detector, scenes, iters, queries, score_threshold=None, gap=None,
+               mirror=None) -> tuple:
     """parq-run's pipeline on each scene: ([(fused boxes, ground-truth boxes, up), ...] in
-    scene order, per-snippet seconds); ``gap``: keyframes between a snippet's views (None:
-    the model card's)."""
+    scene order, per-snippet seconds, a snippet's mirror run included); ``gap``: keyframes
+    between a snippet's views, ``mirror``: whether to add mirror runs (None: the model
+    card's)."""
     from parq_runtime import evaluation, readers, scene
 
     pairs, seconds = [], []
     settings = scene.RunSettings(iters=iters, queries=queries, score_threshold=score_threshold,
-                                 gap=gap)
+                                 gap=gap, mirror=mirror)
     for folder in scenes:
         capture = readers.open_capture(folder)
         result = scene.run(detector, capture, settings)
@@ -80,12 +83,12 @@ def run_scenes(detector, scenes, iters, queries, score_threshold=None, gap=None)
 
 
 def evaluate_setting(detector, scenes, iters, queries, score_threshold=None,
-                     gap=None) -> tuple:
+                     gap=None, mirror=None) -> tuple:
     """(metrics, per-snippet seconds) over the scenes, pooled as parq-eval does; arguments as
     :func:`run_scenes`'s."""
     from parq_runtime import evaluation
 
-    pairs, seconds = run_scenes(detector, scenes, iters, queries, score_threshold, gap)
+    pairs, seconds = run_scenes(detector, scenes, iters, queries, score_threshold, gap, mirror)
     return evaluation.evaluate(pairs, detector.classes), seconds
 
 
@@ -96,6 +99,9 @@ def main():
                    help="onnxruntime threads (default: its own choice)")
     p.add_argument("--out", default=str(common.RESULTS / "tradeoff"),
                    help="output stem: .md, .csv, .json, .png (default results/tradeoff)")
+    p.add_argument("--mirror", action=argparse.BooleanOptionalAction, default=None,
+                   help="add each snippet's mirror-image run (default: the model card's run "
+                        "setting)")
     p.add_argument("--latency-from", type=pathlib.Path, default=None,
                    help="an earlier run's .json: report its latencies (same graphs) instead "
                         "of timing here")
@@ -106,14 +112,16 @@ def main():
 
     det = Detector(args.model, threads=args.threads)
     learned = len(det.card.reference_points)
+    args.mirror = det.card.run_mirror if args.mirror is None else args.mirror
     scenes, _ = scenes_from_arguments(args)
     # Warm-up pass, not reported: the first setting would otherwise pay for reading the
     # scenes from a cold disk cache (18 ms per snippet instead of 13 at 1 x 16).
-    evaluate_setting(det, scenes, 1, min(QUERIES))
+    evaluate_setting(det, scenes, 1, min(QUERIES), mirror=args.mirror)
     rows = []
     for iters in ITERATIONS:
         for queries in sorted(set(QUERIES + (learned,))):
-            metrics, seconds = evaluate_setting(det, scenes, iters, queries)
+            metrics, seconds = evaluate_setting(det, scenes, iters, queries,
+                                                mirror=args.mirror)
             row = {"iterations": iters, "queries": queries,
                    "seconds_per_snippet": round(statistics.median(seconds), 5)}
             for t in ("0.25", "0.5", "0.7"):
@@ -137,14 +145,17 @@ def write(out, rows, args, learned, earlier=None):
         w.writerows(rows)
     machine = common.machine()
     timed = earlier["machine"] if earlier else machine
-    record = {"machine": machine, "scenes": args.scenes, "seed": HELD_OUT_SEED, "rows": rows}
+    record = {"machine": machine, "scenes": args.scenes, "seed": HELD_OUT_SEED,
+              "mirror": args.mirror, "rows": rows}
     if earlier:
         record["latency_from"] = {"file": str(args.latency_from), "machine": timed}
     out.with_suffix(".json").write_text(json.dumps(record, indent=1))
     source = f" (from {args.latency_from.name}, not timed in this run)" if earlier else ""
     lines = [f"{args.scenes} held-out scenes (parq-synth seed {HELD_OUT_SEED}, {args.size}), "
-             f"3-view snippets, scene-level F1 (parq-eval); latency = median seconds per "
-             f"snippet on {timed['cpu']}, {timed['cores']} cores{source}.", "",
+             f"3-view snippets{', each also run mirrored' if args.mirror else ''}, "
+             f"scene-level F1 (parq-eval); latency = median seconds per "
+             f"snippet{' (both runs)' if args.mirror else ''} on {timed['cpu']}, "
+             f"{timed['cores']} cores{source}.", "",
              "| iterations | queries | F1@0.25 | F1@0.5 | F1@0.7 | ms / snippet |",
              "|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
