@@ -181,7 +181,7 @@ def run(args) -> int:
     if args.ply is not None:
         ply.write(args.ply, result.fusion.boxes)
     if args.output is None:
-        sys.stdout.write(text + "\n")
+        files.write_stdout(text)
     else:
         files.atomic_write(args.output, text + "\n")
     if not args.quiet:

@@ -23,7 +23,7 @@ import sys
 
 import numpy as np
 
-from . import geometry
+from . import files, geometry
 from .boxes import Box
 from .errors import ParqError
 from .files import read_json
@@ -142,7 +142,7 @@ def main(argv=None) -> int:
     except ParqError as e:
         print(f"parq-eval: error: {e}", file=sys.stderr)
         return e.exit_code
-    print(json.dumps(metrics, indent=1) if args.json else format_table(metrics))
+    files.write_stdout(json.dumps(metrics, indent=1) if args.json else format_table(metrics))
     return 0
 
 

@@ -7,6 +7,7 @@ import json
 import os
 import pathlib
 import shutil
+import sys
 import tempfile
 
 from .errors import ParqError
@@ -21,6 +22,17 @@ def read_json(path):
         raise ParqError(f"{path}: not found") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise ParqError(f"{path}: not readable JSON ({e})") from None
+
+
+def write_stdout(text: str) -> None:
+    """``text`` and a newline on stdout.  A reader that stops early (``| head``) closes the
+    pipe: the output then ends quietly instead of with a traceback."""
+    try:
+        sys.stdout.write(text + "\n")
+        sys.stdout.flush()
+    except BrokenPipeError:
+        # Python would hit the closed pipe again when it flushes stdout at exit
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 def check_writable(path) -> pathlib.Path:

@@ -227,3 +227,13 @@ def test_parq_eval_cli(tmp_path):
     p = subprocess.run([sys.executable, "-m", "parq_runtime.evaluation", tmp_path / "nope.json",
                         tmp_path / "boxes.json"], capture_output=True, text=True)
     assert p.returncode == 2 and "Traceback" not in p.stderr and "nope.json" in p.stderr
+    # a reader that stops early (| head) closes the pipe: no traceback.  stdout is closed
+    # before the interpreter has started, so the write always meets the closed pipe.
+    p = subprocess.Popen([sys.executable, "-m", "parq_runtime.evaluation",
+                          tmp_path / "pred.json", tmp_path / "boxes.json", "--json"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p.stdout.close()
+    stderr = p.stderr.read()
+    p.wait()
+    p.stderr.close()
+    assert "Traceback" not in stderr and "Error" not in stderr, stderr
