@@ -19,7 +19,9 @@ with x negated, so the evaluation region (symmetric in x for every card made her
 authors') and the axis-aligned NMS keep the same boxes as they would unmirrored.
 
 ``benchmarks/mirror_tta.py`` measures what running each snippet both ways and fusing the
-detections buys (docs/demo-experiments.md, "Mirror test-time augmentation").
+detections buys (docs/demo-experiments.md, "Mirror test-time augmentation"): on the demo's
+120 held-out scenes F1 0.504 / 0.354 against 0.489 / 0.307, for twice the time.  A card
+tuned with them (``parq_train.tune --mirror``, the demo's) makes them parq-run's default.
 """
 from __future__ import annotations
 

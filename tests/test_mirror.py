@@ -112,7 +112,7 @@ def test_parq_run_mirror_fuses_both_runs_and_counts_them_as_support(tmp_path):
 
     plain, mirrored = tmp_path / "plain.json", tmp_path / "mirror.json"
     sample = str(DEMO / "sample-scene")
-    assert cli.main([sample, "-q", "-o", str(plain)]) == 0
+    assert cli.main([sample, "-q", "--no-mirror", "-o", str(plain)]) == 0
     assert cli.main([sample, "-q", "--mirror", "-o", str(mirrored)]) == 0
     a, b = (json.loads(p.read_text()) for p in (plain, mirrored))
     card_support = a["settings"]["min_support"]
@@ -126,6 +126,11 @@ def test_parq_run_mirror_fuses_both_runs_and_counts_them_as_support(tmp_path):
     assert supports and min(supports) >= 2 * card_support
     assert max(supports) <= 2 * len(b["snippets"])
     assert max(supports) > max(box["support"] for box in a["scene"]["boxes"])
+    # the demo card's run setting has mirror runs: no flag is --mirror
+    default = tmp_path / "default.json"
+    assert cli.main([sample, "-q", "-o", str(default)]) == 0
+    d = json.loads(default.read_text())
+    assert d["settings"] == b["settings"] and d["scene"]["boxes"] == b["scene"]["boxes"]
     # overlapping snippets (the feature cache) run mirrored too
     assert cli.main([sample, "-q", "--mirror", "--stride", "1", "--max-snippets", "4",
                      "--min-support", "1", "-o", str(mirrored)]) == 0
