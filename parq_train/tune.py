@@ -182,10 +182,13 @@ _SHARED = {}   # what _candidates reads in a worker process (inherited by fork, 
 
 
 def _map(function, tasks, records, classes, mirror, jobs) -> list:
-    """[function(task) for task in tasks] with the records shared, in ``jobs`` processes."""
+    """[function(task) for task in tasks] with the records shared, in ``jobs`` processes.
+    The workers are forked, so they read the records without copying or pickling them; fork
+    is only safe on Linux (macOS's system libraries are not fork-safe), so elsewhere the
+    tasks run in this process."""
     _SHARED.update(records=records, classes=classes, mirror=mirror)
     try:
-        if jobs <= 1 or len(tasks) < 2 or "fork" not in mp.get_all_start_methods():
+        if jobs <= 1 or len(tasks) < 2 or not sys.platform.startswith("linux"):
             return [function(task) for task in tasks]
         with ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork")) as pool:
             return list(pool.map(function, tasks, chunksize=4))
@@ -240,7 +243,7 @@ def main(argv=None) -> int:
                    help="choose the post-processing for runs that add each snippet's mirror "
                         "image (parq-run --mirror; supports up to 4 runs); the card records "
                         "mirror runs as parq-run's default")
-    p.add_argument("--jobs", type=positive_int, default=len(os.sched_getaffinity(0)),
+    p.add_argument("--jobs", type=positive_int, default=os.cpu_count() or 1,
                    help="processes that score the candidates (default: one per core; the "
                         "choice is the same for any number)")
     p.add_argument("-o", "--output", type=pathlib.Path, required=True,
