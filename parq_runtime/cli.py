@@ -75,8 +75,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--mirror", action=argparse.BooleanOptionalAction, default=None,
                    help="also run each snippet on its mirror image (frames flipped left-right, "
                         "the world reflected) and fuse both runs' boxes: twice the time, "
-                        "support then counts runs (default: the model card's run setting; "
-                        "--no-mirror for half the time)")
+                        "support then counts runs (default: the model card's run setting, on "
+                        "for the demo, off for the authors' checkpoints; --no-mirror for half "
+                        "the time)")
     p.add_argument("--form", choices=("auto", "cached", "folded"), default="auto",
                    help="cross-attention form: auto picks the cheaper exact one (default)")
     p.add_argument("--keyframe-angle", type=non_negative_float, default=15.0,
