@@ -442,3 +442,11 @@ def test_tune_a_checkpoint_records_its_setting_and_a_query_ranking(tiny_checkpoi
         ranking = configs[queries].extra["postprocess_tuning"]["query_ranking"]
         assert ranking["order"] == list(configs[queries].query_order)
     assert configs[8].query_order == configs[20].query_order
+    # with --mirror the checkpoint records mirror runs, and its export carries them
+    out = tmp_path / "tuned-mirror.pt"
+    assert tune.main([str(tiny_checkpoint), "--data", str(tmp_path / "val"), "-o", str(out),
+                      "--queries", "8", "--iters", "1", "--mirror"]) == 0
+    config = checkpoint.load(out).config
+    assert (config.run_iters, config.run_queries, config.run_mirror) == (1, 8, True)
+    assert config.query_order == configs[8].query_order    # ranked on plain runs, as before
+    assert config.extra["postprocess_tuning"]["mirror"] is True
