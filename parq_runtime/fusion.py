@@ -138,8 +138,10 @@ class SceneFusion:
         return replace(best, center=center, size=size,
                        corners=geometry.box_corners(center, size, best.rotation))
 
-    def _kept(self) -> list:
-        return [c for c in self.clusters if c.support >= self.min_support]
+    def _kept(self, min_support: int | None = None) -> list:
+        """The clusters with at least ``min_support`` (None: this fusion's) runs."""
+        least = self.min_support if min_support is None else min_support
+        return [c for c in self.clusters if c.support >= least]
 
     @property
     def boxes(self) -> list:
@@ -148,7 +150,7 @@ class SceneFusion:
     def boxes_with_support(self, min_support: int) -> list:
         """The scene boxes that ``min_support`` would keep: the clusters do not depend on it
         (it only filters them), so one fusion answers for every support (parq_train.tune)."""
-        return [c.fused for c in self.clusters if c.support >= min_support]
+        return [c.fused for c in self._kept(min_support)]
 
     @property
     def sources(self) -> list:

@@ -169,13 +169,17 @@ def select(records: list, classes, thresholds=THRESHOLDS, regions=REGIONS,
         supports.setdefault((mode, ratio), []).append(support)
     tasks = [(float(t), tuple(region), mode, tuple(s), ratio)
              for (mode, ratio), s in supports.items() for region in regions for t in thresholds]
-    found = {}
-    for task, rows in zip(tasks, _map(_candidates, tasks, records, classes, mirror, jobs)):
-        found.update({(task[0], task[1], task[2], row["min_support"], task[4]): row
-                      for row in rows})
-    table = [found[(float(t), tuple(region), mode, support, ratio)]
+    found = {_key(row["fusion"], row["min_support"], row["ray_ratio"], row["eval_region"],
+                  row["score_threshold"]): row
+             for rows in _map(_candidates, tasks, records, classes, mirror, jobs) for row in rows}
+    table = [found[_key(mode, support, ratio, region, t)]
              for mode, support, ratio in fusions for region in regions for t in thresholds]
     return best_of(table), table
+
+
+def _key(fusion: str, min_support: int, ray_ratio: float, region, threshold) -> tuple:
+    """A candidate's settings, hashable: where :func:`select` files its table row."""
+    return fusion, min_support, ray_ratio, tuple(region), float(threshold)
 
 
 _SHARED = {}   # what _candidates reads in a worker process (inherited by fork, not pickled)
