@@ -2,8 +2,8 @@
 mirror image buys, chosen on validation scenes and scored on held-out ones.
 
 1. *Validation*: runs the model once on each validation scene with mirror runs (every snippet
-   box kept: threshold 0, no region; ``parq_train.tune.run_once``), then fuses the plain and the mirrored detections under a
-   grid of post-processings (score threshold x ray ratio x minimum support, support counting
+   box kept: threshold 0, no region; ``parq_train.tune.run_once``), then fuses the plain and
+   the mirrored detections under a grid of post-processings (score threshold x ray ratio x minimum support, support counting
    runs; the card's evaluation region) and prints the best by F1@0.25 + F1@0.5, beside the
    card's own post-processing without mirror runs, fused from the same detections.  The grid
    is the card's neighbourhood (ray fusion only, one region; 40 candidates), the question
@@ -56,20 +56,9 @@ def held_out(detector, scenes: list, iters: int, queries: int, chosen: dict | No
     """(counts, seconds per snippet) of parq-run's pipeline on the held-out scenes: the card's
     post-processing without mirror runs (``chosen`` None; parq-run --no-mirror), else
     ``--mirror`` with the chosen threshold, ray ratio and support."""
-    from parq_runtime import evaluation, readers, scene
-
-    settings = scene.RunSettings(iters=iters, queries=queries, mirror=False)
-    if chosen is not None:
-        settings = scene.RunSettings(iters=iters, queries=queries, mirror=True,
-                                     score_threshold=chosen["score_threshold"],
-                                     ray_ratio=chosen["ray_ratio"],
-                                     min_support=chosen["min_support"])
-    pairs, seconds = [], []
-    for folder in scenes:
-        result = scene.run(detector, readers.open_capture(folder), settings)
-        truth, up = evaluation.load_ground_truth(folder / "boxes.json")
-        pairs.append((result.fusion.boxes, truth, up))
-        seconds += [s.seconds for s in result.snippets]
+    overrides = {"mirror": False} if chosen is None else {
+        "mirror": True, **{k: chosen[k] for k in ("score_threshold", "ray_ratio", "min_support")}}
+    pairs, seconds = tradeoff.run_scenes(detector, scenes, iters, queries, **overrides)
     return spread.counts_of(pairs, detector.classes), float(np.median(seconds))
 
 
@@ -92,7 +81,7 @@ def main() -> int:
     detector = Detector(args.model)
     card = detector.card
     iters, queries = card.run_setting()
-    folders = sorted(f for d in args.val for f in d.iterdir() if (f / "boxes.json").exists())
+    folders = tune.validation_folders(args.val, None)
     start = time.perf_counter()
     records = tune.run_once(detector, folders, iters, queries, mirror=True)
     collect_minutes = (time.perf_counter() - start) / 60

@@ -63,16 +63,16 @@ def held_out_scenes(folder: pathlib.Path, scenes: int, frames: int, size) -> lis
 
 
 def run_scenes(detector, scenes, iters, queries, score_threshold=None, gap=None,
-               mirror=None) -> tuple:
+               mirror=None, **settings) -> tuple:
     """parq-run's pipeline on each scene: ([(fused boxes, ground-truth boxes, up), ...] in
     scene order, per-snippet seconds, a snippet's mirror run included); ``gap``: keyframes
     between a snippet's views, ``mirror``: whether to add mirror runs (None: the model
-    card's)."""
+    card's); further ``settings``: other scene.RunSettings fields (ray_ratio, min_support)."""
     from parq_runtime import evaluation, readers, scene
 
     pairs, seconds = [], []
     settings = scene.RunSettings(iters=iters, queries=queries, score_threshold=score_threshold,
-                                 gap=gap, mirror=mirror)
+                                 gap=gap, mirror=mirror, **settings)
     for folder in scenes:
         capture = readers.open_capture(folder)
         result = scene.run(detector, capture, settings)
