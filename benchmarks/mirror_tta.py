@@ -2,13 +2,13 @@
 mirror image buys, chosen on validation scenes and scored on held-out ones.
 
 1. *Validation*: runs the model once on each validation scene with mirror runs (every snippet
-   box kept: threshold 0, no region; ``parq_train.tune.run_once``), then fuses the plain and
-   the mirrored detections under a grid of post-processings (score threshold x ray ratio x minimum support, support counting
-   runs; the card's evaluation region) and prints the best by F1@0.25 + F1@0.5, beside the
-   card's own post-processing without mirror runs, fused from the same detections.  The grid
-   is the card's neighbourhood (ray fusion only, one region; 40 candidates), the question
-   this script was written to answer before the card had mirror runs; the full grid is
-   ``python -m parq_train.tune MODEL --mirror``, which made the demo's card.
+   box kept: threshold 0, no region; ``parq_train.tune.run_once``), then fuses the plain and the
+   mirrored detections under a grid of post-processings (score threshold x ray ratio x minimum
+   support, support counting runs; the card's evaluation region) and prints the best by F1@0.25
+   + F1@0.5, beside the card's own post-processing without mirror runs, fused from the same
+   detections.  The grid is the card's neighbourhood (ray fusion only, one region; 40
+   candidates), the question this script was written to answer before the card had mirror runs;
+   the full grid is ``python -m parq_train.tune MODEL --mirror``, which made the demo's card.
 2. *Held out*: ``parq-run``'s own pipeline (``scene.run``) on the held-out scenes (parq-synth
    seed 3000, tradeoff.py's cache) with the card's post-processing and no mirror, then with
    ``--mirror`` and the threshold, ratio and support the validation chose, at --settings,
