@@ -102,8 +102,13 @@ def parser() -> argparse.ArgumentParser:
                         "(default 1.0; 0: boxes only, so that they cannot teach the class head "
                         "what the matching calls a duplicate)")
     p.add_argument("--snapshot-every", type=non_negative_int, default=2000,
-                   help="also write OUTPUT's stem + '-stepN.pt' every N training steps "
-                        "(0: never; default 2000)")
+                   help="also write OUTPUT's stem + '-stepN.pt' every N training steps, and "
+                        "the run's whole state to OUTPUT's stem + '-state.pt' for --resume "
+                        "(removed when the run ends; 0: never; default 2000)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from OUTPUT's stem + '-state.pt': give "
+                        "the same command plus --resume; the weights come out as without the "
+                        "interruption, bit for bit (parq_train.resume)")
     p.add_argument("--threads", type=positive_int, default=None,
                    help="torch threads (default: all)")
     return p
@@ -123,14 +128,22 @@ def run(args, argv) -> int:
 
     from parq_export import checkpoint
 
-    from . import data, pretrain, train
+    from . import data, pretrain, resume, train
     from .symmetry import folds_of_class
 
     if args.threads:
         torch.set_num_threads(args.threads)
     form = "fused" if args.fused_attention else "cached"   # PARQ.forward's attention form
     config = demo_config(iterations=args.iterations, snippet_gap=args.gap)
-    saved = pretrain.read_backbone(args.pretrained, config) if args.pretrained else None
+    command = "parq-train " + " ".join(argv)
+    recipe = recipe_of(args)
+    state_path = resume.path_for(args.output)
+    state, earlier = resume.read(state_path, recipe) if args.resume else (None, None)
+    if state is None and state_path.exists():
+        print(f"parq-train: note: {state_path} is the state of an interrupted run, which "
+              f"--resume would continue; this run starts over and replaces it", file=sys.stderr)
+    saved = pretrain.read_backbone(args.pretrained, config) \
+        if args.pretrained and state is None else None
     start = time.perf_counter()
     log = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
     folders = data.training_scenes(args.data, args.scenes, TRAIN_SEED, args.frames,
@@ -139,7 +152,10 @@ def run(args, argv) -> int:
     snippets = data.load_scenes(folders, config, log=log)
     model = train.new_model(config, args.seed, snippets)
     pre_history, pre_record = [], {"steps": 0}
-    if saved:
+    if state is not None:
+        pre_history, pre_record = earlier["pretrain_history"], earlier["pretraining"]
+        log(f"resuming {state_path} at step {state['step']}/{args.steps}")
+    elif saved:
         pretrain.set_backbone(model.backbone, saved[0], args.pretrained)
         pre_record = dict(saved[1], file=str(args.pretrained),
                           sha256=hashlib.sha256(args.pretrained.read_bytes()).hexdigest())
@@ -154,6 +170,18 @@ def run(args, argv) -> int:
         pretrain.save_backbone(path, model.backbone, pre_record)
         log(f"pretrained backbone {path}")
     pretrained = time.perf_counter() - start - generated
+    if earlier is None:
+        earlier = {"command": command, "resumed": [], "pretraining": pre_record,
+                   "pretrain_history": pre_history,
+                   "minutes": {"generate": round(generated / 60, 1),
+                               "pretrain": round(pretrained / 60, 1)}}
+    else:
+        earlier = dict(earlier, resumed=earlier["resumed"] + [
+            {"step": state["step"], "command": command, "at": now()}])
+
+    def save_state(run_state):
+        resume.save(state_path, run_state, recipe, earlier)
+
     def snapshot(model_now, step):
         path = args.output.with_name(f"{args.output.stem}-step{step}.pt")
         checkpoint.save(path, model_now, {"step": step})
@@ -166,9 +194,12 @@ def run(args, argv) -> int:
                                  snapshot_every=args.snapshot_every,
                                  backbone_lr=args.backbone_lr, form=form, bf16=args.bf16,
                                  denoise_scale=args.denoise,
-                                 denoise_class_weight=args.denoise_class_weight)
+                                 denoise_class_weight=args.denoise_class_weight,
+                                 state=state, save_state=save_state)
     trained = time.perf_counter() - start - generated - pretrained
-    record = {"command": "parq-train " + " ".join(argv), "seed": args.seed,
+    if state is not None:
+        trained += state["seconds"]
+    record = {"command": earlier["command"], "seed": args.seed,
               "data": {"generator": "parq-synth", "seed": TRAIN_SEED, "scenes": len(folders),
                        "frames": args.frames, "folder": str(args.data),
                        "snippets": len(snippets)},
@@ -180,17 +211,34 @@ def run(args, argv) -> int:
               "attention": form,
               "precision": "bfloat16 autocast" if args.bf16 else "float32",
               "threads": torch.get_num_threads(),
-              "minutes": {"generate": round(generated / 60, 1),
-                          "pretrain": round(pretrained / 60, 1), "train": round(trained / 60, 1)},
-              "finished": datetime.datetime.now(datetime.timezone.utc)
-              .isoformat(timespec="seconds"),
+              "minutes": dict(earlier["minutes"], train=round(trained / 60, 1)),
+              "finished": now(),
               "torch": str(torch.__version__), "cpu_count": os.cpu_count(),
               "final_loss": history[-1] if history else None}
+    if earlier["resumed"]:
+        record["resumed"] = earlier["resumed"]
     model.config = model.config.replace(extra={"training": record})
     checkpoint.save(args.output, model, {"training": record, "history": history,
                                          "pretrain_history": pre_history})
+    state_path.unlink(missing_ok=True)
     print(json.dumps(record, indent=1), file=sys.stderr)
     return 0
+
+
+def recipe_of(args) -> dict:
+    """The settings a resumed run must repeat: all that decide the weights (not the output
+    path, data folder, processes, threads or snapshot cadence)."""
+    return {"seed": args.seed, "scenes": args.scenes, "frames": args.frames,
+            "pretrain_steps": args.pretrain_steps,
+            "pretrained": str(args.pretrained) if args.pretrained else None,
+            "steps": args.steps, "batch": args.batch, "gap": args.gap,
+            "iterations": args.iterations, "lr": args.lr, "backbone_lr": args.backbone_lr,
+            "fused_attention": args.fused_attention, "bf16": args.bf16,
+            "denoise": args.denoise, "denoise_class_weight": args.denoise_class_weight}
+
+
+def now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
 
 
 if __name__ == "__main__":

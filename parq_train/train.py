@@ -21,7 +21,7 @@ from torch import nn
 from parq_export.backbone import FrozenBatchNorm2d
 from parq_export.model import PARQ
 
-from . import denoise
+from . import denoise, resume
 from .loss import total_loss
 from .progress import minutes
 
@@ -101,7 +101,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
           lr: float = 4e-4, iterations: int = 4, log=print, log_every: int = 50,
           model: PARQ | None = None, snapshot=None, snapshot_every: int = 0,
           backbone_lr: float = 1.0, form: str = "cached", bf16: bool = False,
-          denoise_scale: float = 0.0, denoise_class_weight: float = 1.0) -> tuple:
+          denoise_scale: float = 0.0, denoise_class_weight: float = 1.0,
+          state: dict | None = None, save_state=None) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
 
@@ -115,7 +116,12 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     with AMX it is faster (see ``parq-train --bf16``); elsewhere it is emulated and slower.
     ``denoise_scale`` above 0 adds a denoising query per target, its center moved by up to
     that many half extents (:mod:`parq_train.denoise`; beyond the paper's objective); 0 trains
-    exactly as before.  ``denoise_class_weight`` scales their class loss."""
+    exactly as before.  ``denoise_class_weight`` scales their class loss.
+
+    ``save_state(state)``, if given, is called at the snapshots' steps with the whole state of
+    the run (:func:`parq_train.resume.capture`); ``state`` is such a state to continue from,
+    in place of the first ``state["step"]`` steps (same arguments otherwise): the weights then
+    come out as without the interruption, bit for bit."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     if model is None:
@@ -129,11 +135,11 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     optimizer = torch.optim.AdamW([{"params": params, "weight_decay": decay, "scale": scale}
                                    for (scale, decay), params in groups.items()], lr=lr)
     folds = torch.as_tensor(folds_of_class)
-    history = []
-    order = []
-    start = time.perf_counter()
-    running = {}
-    for step in range(steps):
+    history, order, running, first, seconds = [], [], {}, 0, 0.0
+    if state is not None:
+        first, seconds, order, running, history = resume.restore(state, model, optimizer, rng)
+    start = time.perf_counter() - seconds
+    for step in range(first, steps):
         if len(order) < batch_size:
             order += list(rng.permutation(len(snippets)))
         batch = [snippets[i] for i in order[:batch_size]]
@@ -176,8 +182,11 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
                                                            "class", "denoise center")
                             if k in mean))
             running = {}
-        if snapshot is not None and snapshot_every and (step + 1) % snapshot_every == 0 \
-                and step + 1 < steps:
-            snapshot(swap_norms(copy.deepcopy(model), to_trainable=False).eval(), step + 1)
+        if snapshot_every and (step + 1) % snapshot_every == 0 and step + 1 < steps:
+            if save_state is not None:
+                save_state(resume.capture(model, optimizer, rng, order, running, history,
+                                          step + 1, time.perf_counter() - start))
+            if snapshot is not None:
+                snapshot(swap_norms(copy.deepcopy(model), to_trainable=False).eval(), step + 1)
     model = swap_norms(model, to_trainable=False).eval()
     return model, history

@@ -450,3 +450,77 @@ def test_tune_a_checkpoint_records_its_setting_and_a_query_ranking(tiny_checkpoi
     assert (config.run_iters, config.run_queries, config.run_mirror) == (1, 8, True)
     assert config.query_order == configs[8].query_order    # ranked on plain runs, as before
     assert config.extra["postprocess_tuning"]["mirror"] is True
+
+
+def test_an_interrupted_run_resumed_from_its_state_gives_the_same_weights(tmp_path):
+    """train(save_state=...) hands out the run's whole state at the snapshot steps; a run
+    continued from the step-4 state (read back from its file) ends bit for bit where the
+    uninterrupted run ends, with the same loss history, also with denoising queries (whose
+    noise comes from the same generator)."""
+    from parq_train import resume
+
+    config = tiny_config(num_queries=16)
+    snippets = tiny_snippets(config)
+    kwargs = dict(steps=7, seed=0, folds_of_class=[1] * 9, batch_size=1, iterations=2,
+                  lr=2e-3, log=lambda *_: None, log_every=3, snapshot_every=2,
+                  denoise_scale=0.4)
+    states = []
+    whole, history = train.train(config, snippets, save_state=states.append, **kwargs)
+    assert [s["step"] for s in states] == [2, 4, 6]
+    path = tmp_path / "run-state.pt"
+    resume.save(path, states[1], {"seed": 0}, {})
+    state, _ = resume.read(path, {"seed": 0})
+    resumed, resumed_history = train.train(config, snippets, model=train.new_model(config, 5),
+                                           state=state, **kwargs)
+    a, b = whole.state_dict(), resumed.state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    strip = lambda h: [{k: v for k, v in e.items() if k != "seconds"} for e in h]  # noqa: E731
+    assert strip(resumed_history) == strip(history)
+    # without the state, the same continuation from a fresh model does not get there
+    fresh, _ = train.train(config, snippets, model=train.new_model(config, 0),
+                           **dict(kwargs, steps=3))
+    assert not all(torch.equal(a[k], fresh.state_dict()[k]) for k in a)
+
+
+def test_parq_train_resume_continues_an_interrupted_command(tmp_path, capsys, monkeypatch):
+    """parq-train killed after a state write, then run again with --resume, writes the
+    checkpoint the uninterrupted command writes, records the resumption and removes the
+    state; a resume with another recipe, or with no state, is refused in one line."""
+    from parq_export import checkpoint
+    from parq_train import cli, resume
+
+    common = ["--seed", "0", "--data", str(tmp_path / "train"), "--scenes", "1", "--frames",
+              "8", "--jobs", "1", "--steps", "5", "--batch", "1", "--iterations", "1",
+              "--pretrain-steps", "2", "--snapshot-every", "2"]
+    assert cli.main([str(tmp_path / "a.pt"), *common]) == 0
+    assert not resume.path_for(tmp_path / "a.pt").exists()
+
+    real_save, writes = resume.save, []
+
+    def save_then_die(*args):
+        real_save(*args)
+        writes.append(args[0])
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(resume, "save", save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        cli.main([str(tmp_path / "b.pt"), *common])
+    monkeypatch.setattr(resume, "save", real_save)
+    assert writes == [tmp_path / "b-state.pt"] and not (tmp_path / "b.pt").exists()
+    capsys.readouterr()
+    assert cli.main([str(tmp_path / "b.pt"), *common, "--lr", "1e-3", "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "written by another recipe" in err and "lr 0.0005" in err
+    assert cli.main([str(tmp_path / "b.pt"), *common, "--resume"]) == 0
+    assert "resuming" in capsys.readouterr().err
+    a, b = (checkpoint.load(tmp_path / f"{n}.pt") for n in "ab")
+    wa, wb = a.model().state_dict(), b.model().state_dict()
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    record = b.config.extra["training"]
+    assert record["resumed"][0]["step"] == 2 and record["command"].endswith("--snapshot-every 2")
+    without_minutes = lambda r: {k: v for k, v in r.items() if k != "minutes"}  # noqa: E731
+    assert without_minutes(record["pretraining"]) == without_minutes(
+        a.config.extra["training"]["pretraining"])
+    assert not resume.path_for(tmp_path / "b.pt").exists()
+    assert cli.main([str(tmp_path / "b.pt"), *common, "--resume"]) == 2
+    assert "no training state to resume" in capsys.readouterr().err
