@@ -97,6 +97,18 @@ def golden_snippet(size=(1296, 968)):
     return images, K, expected["cam_to_world"]
 
 
+def write_report(out: pathlib.Path, lines: list, record) -> None:
+    """Print the markdown ``lines`` and write them to ``out``.md, ``record`` to ``out``.json
+    (folders made as needed)."""
+    import json
+
+    text = "\n".join(lines) + "\n"
+    print(text)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".md").write_text(text)
+    out.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
+
+
 def stats(values) -> dict:
     v = sorted(values)
     q = statistics.quantiles(v, n=4) if len(v) >= 2 else [v[0]] * 3

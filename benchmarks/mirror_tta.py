@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import pathlib
 import sys
 import time
@@ -126,23 +125,13 @@ def main() -> int:
              "| setting | ms a snippet (median) | F1@0.25 (90%) | vs first | F1@0.5 (90%) "
              "| vs first |", "|---|---:|---|---|---|---|"]
     for (name, _, sec), st in zip(rows, stats):
-        cells = []
-        for t in spread.THRESHOLDS:
-            e = st[t]
-            cells.append(f"{e['f1']:.3f} ({e['interval90'][0]:.3f}-{e['interval90'][1]:.3f})")
-            cells.append(f"{e['difference']:+.3f} ({e['difference_interval90'][0]:+.3f} to "
-                         f"{e['difference_interval90'][1]:+.3f}), ahead {e['ahead']:.0%}"
-                         if "difference" in e else "")
+        cells = spread.paired_cells(st)
         lines.append(f"| {name} | {1000 * sec:.1f} | " + " | ".join(cells) + " |")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(text)
-    args.out.with_suffix(".json").write_text(json.dumps(
-        {"validation": {"scenes": len(folders), "card_without_mirror": base, "best": best,
-                        "grid": grid},
-         "held_out": [{"setting": name, "ms_per_snippet": 1000 * sec, **st}
-                      for (name, _, sec), st in zip(rows, stats)]}, indent=1) + "\n")
+    common.write_report(args.out, lines, {
+        "validation": {"scenes": len(folders), "card_without_mirror": base, "best": best,
+                       "grid": grid},
+        "held_out": [{"setting": name, "ms_per_snippet": 1000 * sec, **st}
+                     for (name, _, sec), st in zip(rows, stats)]})
     return 0
 
 

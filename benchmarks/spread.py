@@ -96,6 +96,19 @@ def spread(counts: list, resamples: int, block: int, seed: int = 0) -> dict:
     return out
 
 
+def paired_cells(row: dict) -> list:
+    """Table cells of one model's :func:`spread` row: per threshold, "F1 (90% interval)" and,
+    for models after the first, "difference (its interval), ahead N%"."""
+    cells = []
+    for t in THRESHOLDS:
+        e = row[t]
+        cells.append(f"{e['f1']:.3f} ({e['interval90'][0]:.3f}-{e['interval90'][1]:.3f})")
+        cells.append(f"{e['difference']:+.3f} ({e['difference_interval90'][0]:+.3f} to "
+                     f"{e['difference_interval90'][1]:+.3f}), ahead {e['ahead']:.0%}"
+                     if "difference" in e else "")
+    return cells
+
+
 def markdown(models: list, settings: list, rows: list, args) -> str:
     lines = [f"{args.scenes} held-out scenes (parq-synth seed {tradeoff.HELD_OUT_SEED}, "
              f"{args.size}), each model's card post-processing, at the setting (iterations "
