@@ -50,24 +50,38 @@ def load_ground_truth(path) -> tuple:
 def match_counts(predictions: list, truth: list, threshold: float, classes: list,
                  up=geometry.UP_Z) -> dict:
     """Per-class {"tp", "predictions", "ground_truth"} for one scene."""
+    hit, _ = matches(predictions, truth, threshold, up)
     counts = {c: {"tp": 0, "predictions": 0, "ground_truth": 0} for c in classes}
-    for name in classes:
-        preds = sorted((p for p in predictions if p.class_name == name),
-                       key=lambda p: -p.score)
-        gts = [g for g in truth if g.class_name == name]
-        counts[name]["predictions"] = len(preds)
-        counts[name]["ground_truth"] = len(gts)
-        if not preds or not gts:
-            continue
-        iou = iou_matrix(preds, gts, up)
-        used = np.zeros(len(gts), dtype=bool)
-        for i in range(len(preds)):
-            candidates = np.where(~used & (iou[i] > threshold), iou[i], -1.0)
-            j = int(np.argmax(candidates))
-            if candidates[j] > 0:
-                used[j] = True
-                counts[name]["tp"] += 1
+    for p, found in zip(predictions, hit):
+        if p.class_name in counts:
+            counts[p.class_name]["predictions"] += 1
+            counts[p.class_name]["tp"] += int(found)
+    for g in truth:
+        if g.class_name in counts:
+            counts[g.class_name]["ground_truth"] += 1
     return counts
+
+
+def matches(predictions: list, truth: list, threshold: float, up=geometry.UP_Z) -> tuple:
+    """(predictions (P,) bool: a true positive, truth (G,) bool: found) for one scene, in the
+    lists' order: within each class, predictions in decreasing score each take the unmatched
+    ground-truth box of their class they overlap most, if above ``threshold``."""
+    hit = np.zeros(len(predictions), dtype=bool)
+    found = np.zeros(len(truth), dtype=bool)
+    for name in {p.class_name for p in predictions}:
+        mine = sorted((i for i, p in enumerate(predictions) if p.class_name == name),
+                      key=lambda i: -predictions[i].score)
+        theirs = [j for j, g in enumerate(truth) if g.class_name == name]
+        if not theirs:
+            continue
+        iou = iou_matrix([predictions[i] for i in mine], [truth[j] for j in theirs], up)
+        for row, i in enumerate(mine):
+            candidates = np.where(~found[theirs] & (iou[row] > threshold), iou[row], -1.0)
+            col = int(np.argmax(candidates))
+            if candidates[col] > 0:
+                found[theirs[col]] = True
+                hit[i] = True
+    return hit, found
 
 
 def classes_of(*box_lists) -> list:

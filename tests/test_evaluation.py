@@ -10,7 +10,7 @@ import pytest
 
 from parq_runtime import geometry
 from parq_runtime.boxes import Box
-from parq_runtime.evaluation import evaluate, match_counts
+from parq_runtime.evaluation import evaluate, match_counts, matches
 from parq_runtime.fusion import SceneFusion
 from parq_runtime.iou import footprint, iou_matrix, iou_upright, vertical_range
 
@@ -95,6 +95,9 @@ def test_matching_counts_and_one_prediction_per_box():
     # the class must agree
     assert match_counts([box([0, 0, 0.5], name="table")], gts, 0.25,
                         ["chair", "table"])["table"]["tp"] == 0
+    # which ones: the better-scoring of two on one box takes it, whatever the list order
+    hit, found = matches(preds[::-1], gts + [box([9, 0, 0.5], name="table")], 0.25)
+    assert hit.tolist() == [True, False, True] and found.tolist() == [True, True, False]
 
 
 def test_precision_recall_f1_pooled_over_scenes_and_classes():
