@@ -105,7 +105,7 @@ def scores(scenes: list, card, classes, seen: float) -> dict:
 
     def f1(records, names):
         m = tune.score(records, card.score_threshold, card.eval_region, names, card.fusion,
-                       support_of(card), card.ray_ratio)
+                       support_of(card), card.ray_ratio, scene_nms=card.scene_nms)
         return {t: {k: round(m[t][k], 4) for k in ("precision", "recall", "f1")} for t in m}
 
     every = [(s["snippets"], s["truth"], s["up"]) for s in scenes]
@@ -137,7 +137,7 @@ def stages(scenes: list, card, classes) -> dict:
            f"score > {card.score_threshold}": {"recall": round(above / max(truth, 1), 4)}}
     for support in sorted({1, support_of(card)}):
         m = tune.score(records, card.score_threshold, card.eval_region, classes, card.fusion,
-                       support, card.ray_ratio)[str(IOUS[0])]
+                       support, card.ray_ratio, scene_nms=card.scene_nms)[str(IOUS[0])]
         out[f"fused ({card.fusion}), support {support}"] = {
             k: round(m[k], 4) for k in ("recall", "precision")}
     return out
@@ -192,7 +192,7 @@ def ray_errors(scenes: list, card, classes, radius: float = 1.0) -> dict:
     f1 = {}
     for fix in RAY_FIXES:
         m = tune.score(records[fix], card.score_threshold, card.eval_region, classes,
-                       card.fusion, support_of(card), card.ray_ratio)
+                       card.fusion, support_of(card), card.ray_ratio, scene_nms=card.scene_nms)
         f1[fix] = {t: round(m[t]["f1"], 4) for t in m}
     return {"matched": len(along), "median_along": round(float(np.median(along)), 4) if along
             else None, "median_across": round(float(np.median(across)), 4) if across else None,

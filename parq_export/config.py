@@ -69,6 +69,7 @@ class PARQConfig:
     fusion: str = scene_fusion.AUTHORS_MODE     # scene fusion (parq_runtime.fusion)
     min_support: int = scene_fusion.AUTHORS_MIN_SUPPORT  # snippets that must see a box
     ray_ratio: float = scene_fusion.RAY_RATIO   # along / across the ray, "ray" fusion only
+    scene_nms: float | None = None    # IoU of one object's scene boxes; None: off
     # learned queries, most useful first (parq_train.tune): a run with fewer queries starts
     # from the first ones; () = farthest-point sampling (parq_runtime.queries)
     query_order: tuple = ()
@@ -105,7 +106,8 @@ class PARQConfig:
             # P2 (stride 4) must be exactly (w/4, h/4) for the camera scaling to hold.
             problems.append(f"image_size {self.image_size}: width and height must be "
                             "multiples of 4, at least 32")
-        problems += scene_fusion.problems(self.fusion, self.min_support, self.ray_ratio)
+        problems += scene_fusion.problems(self.fusion, self.min_support, self.ray_ratio,
+                                          self.scene_nms)
         if self.query_order and sorted(self.query_order) != list(range(self.num_queries)):
             problems.append(f"query_order must be a permutation of the {self.num_queries} "
                             "learned queries")

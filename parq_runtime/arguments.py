@@ -65,6 +65,19 @@ def score(text: str) -> float:
     return value
 
 
+def scene_nms(text: str):
+    """An IoU in [0, 1), or "off" (parq_runtime.scene.SCENE_NMS_OFF)."""
+    if text.strip().lower() == "off":
+        return "off"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an IoU or 'off'") from None
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"{value} must be at least 0 and below 1, or 'off'")
+    return value
+
+
 def ray_ratio(text: str) -> float:
     value = number(text)
     if not 1.0 <= value < float("inf"):

@@ -7,7 +7,8 @@ import os
 import pathlib
 import sys
 
-from .arguments import OneLineParser, non_negative_float, positive_int, ray_ratio, score
+from .arguments import (OneLineParser, non_negative_float, positive_int, ray_ratio, scene_nms,
+                        score)
 from .errors import ParqError
 
 DEFAULT_MODEL = pathlib.Path(__file__).resolve().parents[1] / "models" / "parq-demo"
@@ -68,6 +69,10 @@ def parser() -> argparse.ArgumentParser:
                    help="for --fusion ray: how many times less a detection's depth along its "
                         "viewing ray is trusted than its position across it (>= 1; 1 is "
                         "mean; default: the model card's)")
+    p.add_argument("--scene-nms", type=scene_nms, default=None, metavar="IOU|off",
+                   help="report one scene box per object: of two scene boxes of one class "
+                        "overlapping by more than this IoU, only the better-scoring; 'off' "
+                        "reports both, as the authors' protocol (default: the model card's)")
     p.add_argument("--min-support", type=positive_int, default=None,
                    help="report a scene box only when at least this many snippets detect it "
                         "(runs, with mirror runs: two a snippet; default: the model card's, "
@@ -163,7 +168,7 @@ def run(args) -> int:
         score_threshold=args.score_threshold, region=not args.all_regions, form=args.form,
         keyframe_angle=args.keyframe_angle, keyframe_distance=args.keyframe_distance,
         max_snippets=args.max_snippets, fusion=args.fusion, min_support=args.min_support,
-        ray_ratio=args.ray_ratio, mirror=args.mirror)
+        ray_ratio=args.ray_ratio, scene_nms=args.scene_nms, mirror=args.mirror)
     settings = scene.resolved(settings, detector.card)      # the card's iters / queries
     detector.reference_points(settings.queries)  # argument check before the long part
     keys, snippets = scene.plan(capture, settings, detector.card)

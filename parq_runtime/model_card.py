@@ -110,6 +110,13 @@ class ModelCard:
         return float(self.raw["postprocess"].get("ray_ratio", fusion.RAY_RATIO))
 
     @property
+    def scene_nms(self) -> float | None:
+        """IoU above which two scene boxes of one class are one object (parq_runtime.fusion;
+        None, and cards before it: off)."""
+        value = self.raw["postprocess"].get("scene_nms")
+        return None if value is None else float(value)
+
+    @property
     def snippet_gap(self) -> int:
         """Keyframes between a snippet's views the model was trained with (1: consecutive, the
         authors'; cards written before it was recorded have 1)."""
@@ -219,7 +226,7 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
     post = raw["postprocess"] if isinstance(raw["postprocess"], dict) else {}
     found = fusion.problems(post.get("fusion", fusion.AUTHORS_MODE),
                             post.get("min_support", fusion.AUTHORS_MIN_SUPPORT),
-                            post.get("ray_ratio", fusion.RAY_RATIO))
+                            post.get("ray_ratio", fusion.RAY_RATIO), post.get("scene_nms"))
     if found:
         raise ParqError(f"{path}: postprocess: {'; '.join(found)}")
     snippets = raw.get("snippets", {})

@@ -31,8 +31,19 @@ class RunSettings:
     fusion: str | None = None             # None: the model card's
     min_support: int | None = None        # None: the model card's
     ray_ratio: float | None = None        # None: the model card's
+    scene_nms: float | str | None = None  # None: the model card's; SCENE_NMS_OFF: none
     mirror: bool | None = None            # also run each snippet's mirror image; None: the
                                           # model card's run setting
+
+
+SCENE_NMS_OFF = "off"
+
+
+def scene_nms(settings: RunSettings, card) -> float | None:
+    """The fusion's scene NMS IoU: the settings', else the card's; None when off."""
+    if settings.scene_nms == SCENE_NMS_OFF:
+        return None
+    return card.scene_nms if settings.scene_nms is None else float(settings.scene_nms)
 
 
 @dataclass
@@ -111,7 +122,8 @@ def run(detector, capture: Capture, settings: RunSettings, progress=None) -> Sce
                              up=capture.up,
                              mode=settings.fusion or detector.card.fusion,
                              min_support=min_support(settings, detector.card),
-                             ray_ratio=settings.ray_ratio or detector.card.ray_ratio))
+                             ray_ratio=settings.ray_ratio or detector.card.ray_ratio,
+                             scene_nms=scene_nms(settings, detector.card)))
     # Overlapping windows share frames: their image features are computed once (streaming).
     # An LRU cache of span + gap - 1 frames never encodes one twice (simulated for 1-9 views,
     # gaps 1-6 and every stride below the span; tests/test_export.py runs five cases); with

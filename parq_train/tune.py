@@ -24,6 +24,12 @@ parq_runtime.mirror): the detector pass makes both runs, the grid's supports cou
 twice the plain grid's), and the card records mirror runs in its run setting, so parq-run
 makes them unless told ``--no-mirror``.
 
+Then the scene NMS (parq_runtime.fusion: of two scene boxes of one class overlapping by more
+than an IoU, only the better-scoring is reported) is chosen for the best candidate: off, or
+one of SCENE_NMS, by the same criterion, off winning ties.  It comes after the grid, not in it,
+so that it does not multiply the grid's time; it only removes boxes that the chosen candidate
+keeps.
+
 Before that, a checkpoint's learned queries are ranked (``query_order``, see
 parq_runtime.queries; a model folder keeps its own ranking): one pass with all of them, each
 query scored by the snippet detections it makes above score 0.7, +1 for each that overlaps a
@@ -75,8 +81,9 @@ MIRROR_FUSIONS = ((AUTHORS_MODE, AUTHORS_MIN_SUPPORT, RAY_RATIO),) + tuple(
     if (mode, support) != (AUTHORS_MODE, AUTHORS_MIN_SUPPORT))
 RANKING_SCORE, RANKING_IOU, FALSE_WEIGHT = 0.7, 0.25, 0.5  # how query_utility counts
 AUTHORS = {"score_threshold": 0.8, "eval_region": list(REGIONS[0]), "fusion": FUSIONS[0][0],
-           "min_support": FUSIONS[0][1]}
-CHOSEN = ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio")
+           "min_support": FUSIONS[0][1], "scene_nms": None}
+CHOSEN = ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio", "scene_nms")
+SCENE_NMS = (None, 0.0, 0.05, 0.1, 0.2, 0.3)   # None: off, the authors' protocol
 
 
 def run_once(detector, folders, iters: int, queries: int, stride: int | None = None,
@@ -126,17 +133,18 @@ def rank_queries(utility: np.ndarray) -> list:
 
 def score(records: list, threshold: float, region, classes, fusion: str = AUTHORS_MODE,
           min_support: int = AUTHORS_MIN_SUPPORT, ray_ratio: float = RAY_RATIO,
-          mirror: bool = False) -> dict:
+          mirror: bool = False, scene_nms: float | None = None) -> dict:
     """parq-eval metrics of the scenes fused with ``fusion``, ``min_support`` and ``ray_ratio``
     when snippets keep boxes scoring above ``threshold`` whose local centers lie in
     ``region``; ``mirror``: the records are run_once's with mirror runs, fused as parq-run
     --mirror fuses them."""
     return score_supports(records, threshold, region, classes, fusion, (min_support,),
-                          ray_ratio, mirror)[min_support]
+                          ray_ratio, mirror, scene_nms)[min_support]
 
 
 def score_supports(records: list, threshold: float, region, classes, fusion: str,
-                   supports, ray_ratio: float = RAY_RATIO, mirror: bool = False) -> dict:
+                   supports, ray_ratio: float = RAY_RATIO, mirror: bool = False,
+                   scene_nms: float | None = None) -> dict:
     """{support: :func:`score`'s metrics} for each of ``supports``, from one fusion of each
     scene (the support only filters the fused boxes)."""
     def kept(boxes):
@@ -145,7 +153,7 @@ def score_supports(records: list, threshold: float, region, classes, fusion: str
 
     fused = []
     for snippets, truth, up in records:
-        scene_boxes = SceneFusion(up=up, mode=fusion, ray_ratio=ray_ratio)
+        scene_boxes = SceneFusion(up=up, mode=fusion, ray_ratio=ray_ratio, scene_nms=scene_nms)
         for n, boxes in enumerate(snippets):
             if mirror:
                 scene_boxes.add(kept(boxes[0]), n)
@@ -209,17 +217,28 @@ def _candidates(task) -> list:
 
 
 def candidate(records: list, classes, threshold: float, region, fusion: str, min_support: int,
-              ray_ratio: float, mirror: bool = False) -> dict:
+              ray_ratio: float, mirror: bool = False, scene_nms: float | None = None) -> dict:
     """One row of :func:`select`'s table: the settings and the F1s they give on ``records``."""
-    m = score(records, threshold, region, classes, fusion, min_support, ray_ratio, mirror)
-    return row_of(threshold, region, fusion, min_support, ray_ratio, m)
+    m = score(records, threshold, region, classes, fusion, min_support, ray_ratio, mirror,
+              scene_nms)
+    return row_of(threshold, region, fusion, min_support, ray_ratio, m, scene_nms)
 
 
 def row_of(threshold: float, region, fusion: str, min_support: int, ray_ratio: float,
-           metrics: dict) -> dict:
+           metrics: dict, scene_nms: float | None = None) -> dict:
     return {"score_threshold": threshold, "eval_region": list(region), "fusion": fusion,
-            "min_support": min_support, "ray_ratio": ray_ratio,
+            "min_support": min_support, "ray_ratio": ray_ratio, "scene_nms": scene_nms,
             **{f"f1@{k}": round(metrics[k]["f1"], 4) for k in metrics}}
+
+
+def select_scene_nms(records: list, classes, best: dict, mirror: bool = False,
+                     choices=SCENE_NMS) -> tuple:
+    """(the best of ``best`` with each scene NMS of ``choices``, their rows), by
+    :func:`best_of`: the first choice (off) wins ties."""
+    keys = ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio")
+    rows = [candidate(records, classes, *(best[k] for k in keys), mirror, nms)
+            for nms in choices]
+    return best_of(rows), rows
 
 
 def best_of(table: list) -> dict:
@@ -274,9 +293,11 @@ def record_of(args, folders, best, table, ranking) -> dict:
 
 def choose(records: list, classes, args) -> tuple:
     """:func:`select` over the grid for the run setting of ``args`` (with or without mirror
-    runs)."""
-    return select(records, classes, fusions=MIRROR_FUSIONS if args.mirror else FUSIONS,
-                  mirror=args.mirror, jobs=args.jobs)
+    runs), then :func:`select_scene_nms` for its best; the table ends with the NMS rows."""
+    best, table = select(records, classes, fusions=MIRROR_FUSIONS if args.mirror else FUSIONS,
+                         mirror=args.mirror, jobs=args.jobs)
+    best, rows = select_scene_nms(records, classes, best, args.mirror)
+    return best, table + rows
 
 
 def run(args) -> int:
@@ -361,6 +382,7 @@ def run_checkpoint(args, folders) -> int:
     model.config = loaded.config.replace(
         score_threshold=best["score_threshold"], eval_region=tuple(best["eval_region"]),
         fusion=best["fusion"], min_support=best["min_support"], ray_ratio=best["ray_ratio"],
+        scene_nms=best["scene_nms"],
         run_iters=args.iters, run_queries=args.queries, run_mirror=args.mirror, extra=extra,
         query_order=tuple(order))
     metadata = {"tuning_table": table}

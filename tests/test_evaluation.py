@@ -212,6 +212,31 @@ def test_min_support_counts_snippets_not_detections():
         SceneFusion(min_support=0)
 
 
+def test_scene_nms_keeps_one_box_per_object_and_class():
+    """Two clusters grown on one chair (a snippet's two detections each start one) are one
+    object under scene NMS: the better-scoring stays, sources and supports follow it; a table
+    in the same place is another object; off (None) reports both, as before."""
+    from parq_runtime.errors import ParqError
+
+    def fused(scene_nms):
+        fusion = SceneFusion(scene_nms=scene_nms)
+        fusion.add([box([0, 0, 0.5], score=0.8), box([0.6, 0, 0.5], score=0.9),
+                    box([0.3, 0, 0.5], name="table", score=0.7), box([4, 0, 0.5])], 0)
+        fusion.add([box([0.62, 0, 0.5], score=0.6)], 1)
+        return fusion
+
+    assert len(fused(None).boxes) == 4
+    fusion = fused(0.05)                     # the chairs' IoU: 0.4 / 1.6 = 0.25
+    assert [(b.class_name, round(float(b.center[0]), 1)) for b in fusion.boxes] == [
+        ("chair", 0.6), ("table", 0.3), ("chair", 4.0)]
+    assert fusion.supports == [2, 1, 1] and fusion.sources == [0, 0, 0]
+    assert len(fused(0.3).boxes) == 4        # overlapping less than the threshold: both kept
+    assert len(fusion.boxes_with_support(2)) == 1
+    for bad in (1.0, -0.1, True, "0.1"):
+        with pytest.raises(ParqError, match="scene_nms"):
+            SceneFusion(scene_nms=bad)
+
+
 def test_parq_eval_cli(tmp_path):
     gt = {"format": "parq-onnx-boxes", "version": 1, "frame": "world", "up": [0, 0, 1],
           "boxes": [box([0, 0, 0.5]).to_json(), box([2, 0, 0.5]).to_json()]}

@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from parq_runtime import cli
+from parq_runtime.boxes import Box
+from parq_runtime.iou import iou_matrix
 from parq_runtime.results import SCHEMA
 
 from conftest import ROOT, model_with_card, write_scannet
@@ -90,6 +92,19 @@ def test_parq_run_end_to_end(tiny_model, tmp_path, authors_names):
     assert (mean["settings"]["fusion"], mean["settings"]["min_support"]) == ("mean", 2)
     assert mean["scene"]["boxes"] and min(b["support"] for b in mean["scene"]["boxes"]) >= 2
     assert min(b["support"] for b in data["scene"]["boxes"]) >= 1
+    assert data["settings"]["scene_nms"] is None                # this card has none
+    # scene NMS from the command line: no two scene boxes of one class overlap at all
+    code, stdout, _ = run_cli(folder, "--model", tiny_model, "--iters", 2, "--queries", 16,
+                              "--score-threshold", 0, "--all-regions", "--fusion", "mean",
+                              "--scene-nms", 0, "-q")
+    assert code == 0
+    nms = json.loads(stdout)
+    assert nms["settings"]["scene_nms"] == 0.0
+    boxes = [Box.from_json(b) for b in nms["scene"]["boxes"]]
+    for name in {b.class_name for b in boxes}:
+        same = [b for b in boxes if b.class_name == name]
+        overlap = iou_matrix(same, same)[~np.eye(len(same), dtype=bool)]
+        assert (overlap <= 0).all()
 
 
 def test_parq_run_spaces_a_snippets_views_by_the_gap(tiny_model, tmp_path):
@@ -178,7 +193,9 @@ def test_bad_arguments(tiny_model, scannet_folder, tmp_path):
                          (["--threads", 0], "--threads"), (["--fusion", "avg"], "--fusion"),
                          (["--min-support", 0], "--min-support"),
                          (["--ray-ratio", 0.5], "--ray-ratio"),
-                         (["--ray-ratio", "inf"], "--ray-ratio")):
+                         (["--ray-ratio", "inf"], "--ray-ratio"),
+                         (["--scene-nms", 1.5], "--scene-nms"),
+                         (["--scene-nms", "none"], "--scene-nms")):
         out = tmp_path / "x.json"
         _one_line_error(*run_cli(scannet_folder, "--model", tiny_model, "-o", out, *args),
                         needle)
@@ -208,6 +225,9 @@ def test_bad_model_folders(tiny_model, scannet_folder, tmp_path):
     card["postprocess"].update(fusion="ray", ray_ratio=0.1)
     (old / "model.json").write_text(json.dumps(card))
     _one_line_error(*run_cli(scannet_folder, "--model", old), "model.json", "ray_ratio")
+    card["postprocess"].update(ray_ratio=10.0, scene_nms=2.0)
+    (old / "model.json").write_text(json.dumps(card))
+    _one_line_error(*run_cli(scannet_folder, "--model", old), "model.json", "scene_nms")
 
 
 def test_bad_captures(tiny_model, tmp_path):

@@ -106,6 +106,33 @@ def test_tune_picks_the_threshold_and_region_that_separate_true_from_false_boxes
     assert everything["f1@0.25"] == 0.5     # 1 of 3 predictions right, the one box found
 
 
+def test_tune_chooses_scene_nms_after_the_grid_and_off_on_ties():
+    """Two detections of each of two snippets on one chair grow two scene boxes: the grid's
+    best keeps both (F1 2/3); scene NMS at the first IoU they exceed reports one (F1 1);
+    with nothing to remove, off (the first choice) wins the tie."""
+    from parq_runtime.boxes import Box
+    from parq_runtime.geometry import box_corners
+    from parq_train import tune
+
+    def box(x, score):
+        c, s, R = np.array([x, 0.0, 1.0]), np.array([0.5, 0.8, 0.5]), np.eye(3)
+        return Box(c, s, R, 0.0, 0, "chair", score, box_corners(c, s, R)), c
+
+    truth = [box(0.0, 1.0)[0]]
+    up = (0.0, 0.0, 1.0)
+    pair = [box(0.0, 0.9), box(0.2, 0.8)]              # their IoU: 0.3 / 0.7 = 0.43
+    records = [([pair, [], pair], truth, up)]           # seen twice: support 2 keeps both
+    best, rows = tune.select(records, ["chair"], thresholds=(0.5,), regions=tune.REGIONS[-1:])
+    assert best["f1@0.25"] == 0.6667 and best["scene_nms"] is None
+    chosen, rows = tune.select_scene_nms(records, ["chair"], best)
+    assert [r["scene_nms"] for r in rows] == list(tune.SCENE_NMS)
+    assert (chosen["scene_nms"], chosen["f1@0.25"]) == (0.0, 1.0)
+    assert next(r for r in rows if r["scene_nms"] == 0.3)["f1@0.25"] == 1.0
+    alone = [([[box(0.0, 0.9)]], truth, up)]
+    best, _ = tune.select(alone, ["chair"], thresholds=(0.5,), regions=tune.REGIONS[-1:])
+    assert tune.select_scene_nms(alone, ["chair"], best)[0]["scene_nms"] is None
+
+
 def test_tune_with_mirror_runs_counts_both_runs_and_scores_alike_in_any_number_of_jobs():
     """Mirror records: each snippet is (plain, mirrored).  The chair is found by both runs of
     the one snippet, a false box by the plain run only; support 2 (runs) keeps the chair
@@ -351,12 +378,14 @@ def test_rewriting_a_card_changes_the_card_everywhere_and_nothing_else(tiny_mode
     from parq_runtime.errors import ParqError
 
     def update(card):
-        card["postprocess"].update(fusion="ray", min_support=2, ray_ratio=3.0)
+        card["postprocess"].update(fusion="ray", min_support=2, ray_ratio=3.0, scene_nms=0.1)
 
+    assert model_card.load(tiny_model).scene_nms is None     # exported without: off
     out = tmp_path / "retuned"
     card = card_rewrite.rewrite(tiny_model, out, update)
     loaded = model_card.load(out)
     assert (loaded.fusion, loaded.min_support, loaded.ray_ratio) == ("ray", 2, 3.0)
+    assert loaded.scene_nms == 0.1
     assert card == json.loads((out / "model.json").read_text())
     for role in ("backbone", "layer"):
         name = card["graphs"][role]["file"]
