@@ -98,7 +98,7 @@ def dataset(fused: list, runs_per_snippet: int, classes: int) -> tuple:
             rows.append(features(cluster, snippets, runs_per_snippet, classes))
             same = [t for t in truth if t.class_name == cluster.fused.class_name]
             right.append(bool(same) and iou_matrix([cluster.fused], same, up).max()
-                         >= LABEL_IOU)
+                         > LABEL_IOU)
             where.append((s, k))
     return np.array(rows), np.array(right), where
 
@@ -154,11 +154,13 @@ def f1s(pairs: list, classes) -> tuple:
 
 
 def card_pairs(records: list, card, mirror: bool) -> list:
-    """The card's own rule on the same detections: its threshold, region, ratio and support."""
+    """The card's own rule on the same detections: its threshold, region, ratio, support and
+    scene NMS."""
     region = card.eval_region
     pairs = []
     for snippets, truth, up in records:
-        fusion = SceneFusion(up=up, mode=card.fusion, ray_ratio=card.ray_ratio)
+        fusion = SceneFusion(up=up, mode=card.fusion, ray_ratio=card.ray_ratio,
+                             scene_nms=card.scene_nms)
         for n, boxes in enumerate(snippets):
             runs = (boxes[0], boxes[1]) if mirror else (boxes,)
             for mirrored, run in enumerate(runs):
@@ -167,6 +169,37 @@ def card_pairs(records: list, card, mirror: bool) -> list:
                            n, bool(mirrored))
         pairs.append((fusion.boxes_with_support(card.min_support), truth, up))
     return pairs
+
+
+def losses(card_held: list, fused: list, where: list, right: np.ndarray) -> dict:
+    """Where the card's rule loses F1 on the held-out scenes at IoU LABEL_IOU: its false boxes
+    by kind (a second box on an object already found; one on an object of its class but
+    overlapping it too little; one on an object of another class; one on no object), and
+    the objects it misses by whether some right cluster (``right``, rows of :func:`dataset`)
+    covers them, with that cluster's support."""
+    kinds = dict.fromkeys(("true", "duplicate", "localisation", "class", "nothing"), 0)
+    missed = {"no right cluster": 0, **{f"right cluster, support {n}": 0 for n in range(1, 5)}}
+    for s, (boxes, truth, up) in enumerate(card_held):
+        hit, found = evaluation.matches(boxes, truth, LABEL_IOU, up)
+        for box, true in zip(boxes, hit):
+            same = [g for g in truth if g.class_name == box.class_name]
+            other = [g for g in truth if g.class_name != box.class_name]
+            overlap = iou_matrix([box], same, up).max() if same else 0.0
+            kind = ("true" if true else "duplicate" if overlap > LABEL_IOU
+                    else "localisation" if overlap > 0 else "class"
+                    if other and iou_matrix([box], other, up).max() > LABEL_IOU else "nothing")
+            kinds[kind] += 1
+        covering = [fused[s][0].clusters[k] for row, (scene, k) in enumerate(where)
+                    if scene == s and right[row]]
+        for g, was_found in zip(truth, found):
+            if was_found:
+                continue
+            support = [c.support for c in covering if c.fused.class_name == g.class_name
+                       and iou_matrix([c.fused], [g], up)[0, 0] > LABEL_IOU]
+            key = f"right cluster, support {min(max(support), 4)}" if support \
+                else "no right cluster"
+            missed[key] += 1
+    return {"boxes": kinds, "missed objects": missed}
 
 
 def main() -> int:
@@ -200,6 +233,7 @@ def main() -> int:
 
     rows = [("card's rule", f1s(card_pairs(validation, card, mirror), classes),
              card_pairs(held_out, card, mirror), None)]
+    lost = {}
     for threshold in args.thresholds:
         fused_val = fuse(validation, threshold, card.ray_ratio, mirror)
         fused_held = fuse(held_out, threshold, card.ray_ratio, mirror)
@@ -217,6 +251,7 @@ def main() -> int:
                       "auc": auc(p_held, right_held)}))
         rows.append((f"oracle, threshold {threshold}", None,
                      kept_pairs(fused_held, where_held, right_held), None))
+        lost[threshold] = losses(rows[0][2], fused_held, where_held, right_held)
         print(rows[-2][0], "done", flush=True)
 
     stats = spread.spread([spread.counts_of(pairs, classes) for _, _, pairs, _ in rows],
@@ -238,7 +273,19 @@ def main() -> int:
         shown = f"{val[0]:.3f} / {val[1]:.3f}" if val else "-"
         area = f"{info['auc']:.3f}" if info else "-"
         lines.append(f"| {name} | {shown} | {area} | " + " | ".join(cells) + " |")
-    common.write_report(args.out, lines, {"features": list(FEATURES), "rows": [
+    lines += ["", f"Where the card's rule loses on the held-out scenes at IoU {LABEL_IOU}: its "
+              "boxes by kind (false ones: a second box on an object already found, a box "
+              "on an object of its class overlapping it too little, on an object of another "
+              "class, on none), and the objects it misses by whether a right cluster of "
+              "the pre-fusion threshold covers them (its support in runs, 4 meaning 4 or "
+              "more).", ""]
+    for threshold, found in lost.items():
+        counts = {**found["boxes"], **found["missed objects"]}
+        if threshold == next(iter(lost)):
+            lines += ["| pre-fusion threshold | " + " | ".join(counts) + " |",
+                      "|---|" + "---:|" * len(counts)]
+        lines.append(f"| {threshold} | " + " | ".join(str(v) for v in counts.values()) + " |")
+    common.write_report(args.out, lines, {"features": list(FEATURES), "losses": lost, "rows": [
         {"rule": name, "validation": val, "clusters": info, **st}
         for (name, val, _, info), st in zip(rows, stats)]})
     return 0
