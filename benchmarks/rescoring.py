@@ -38,11 +38,11 @@ import common
 import spread
 import tradeoff
 from parq_runtime import Detector, evaluation
-from parq_runtime.fusion import SceneFusion
 from parq_runtime.iou import iou_matrix
 from parq_train import tune
 
 LABEL_IOU = 0.25
+EVERYWHERE = (-np.inf, np.inf, -np.inf, np.inf)   # a region that keeps every box
 CUTS = np.round(np.arange(0.2, 0.8, 0.025), 3)
 FEATURES = ("log(1 + support)", "log(1 + members)", "log(1 + snippets)", "max score",
             "mean score", "log(score sum)", "share of members with the box's class",
@@ -53,16 +53,9 @@ FEATURES = ("log(1 + support)", "log(1 + members)", "log(1 + snippets)", "max sc
 
 def fuse(records: list, threshold: float, ray_ratio: float, mirror: bool) -> list:
     """Per scene: (SceneFusion of the snippet boxes scoring above ``threshold``, support 1,
-    ray fusion; truth; up; snippets)."""
-    fused = []
-    for snippets, truth, up in records:
-        fusion = SceneFusion(up=up, mode="ray", ray_ratio=ray_ratio)
-        for n, boxes in enumerate(snippets):
-            runs = (boxes[0], boxes[1]) if mirror else (boxes,)
-            for mirrored, run in enumerate(runs):
-                fusion.add([b for b, _ in run if b.score > threshold], n, bool(mirrored))
-        fused.append((fusion, truth, up, len(snippets)))
-    return fused
+    ray fusion, no region; truth; up; snippets)."""
+    fused = tune.fuse_records(records, threshold, EVERYWHERE, "ray", ray_ratio, mirror)
+    return [(*scene, len(snippets)) for scene, (snippets, _, _) in zip(fused, records)]
 
 
 def features(cluster, snippets: int, runs_per_snippet: int, classes: int) -> list:
@@ -156,19 +149,10 @@ def f1s(pairs: list, classes) -> tuple:
 def card_pairs(records: list, card, mirror: bool) -> list:
     """The card's own rule on the same detections: its threshold, region, ratio, support and
     scene NMS."""
-    region = card.eval_region
-    pairs = []
-    for snippets, truth, up in records:
-        fusion = SceneFusion(up=up, mode=card.fusion, ray_ratio=card.ray_ratio,
-                             scene_nms=card.scene_nms)
-        for n, boxes in enumerate(snippets):
-            runs = (boxes[0], boxes[1]) if mirror else (boxes,)
-            for mirrored, run in enumerate(runs):
-                fusion.add([b for b, c in run if b.score > card.score_threshold
-                            and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]],
-                           n, bool(mirrored))
-        pairs.append((fusion.boxes_with_support(card.min_support), truth, up))
-    return pairs
+    fused = tune.fuse_records(records, card.score_threshold, card.eval_region, card.fusion,
+                              card.ray_ratio, mirror, card.scene_nms)
+    return [(fusion.boxes_with_support(card.min_support), truth, up)
+            for fusion, truth, up in fused]
 
 
 def losses(card_held: list, fused: list, where: list, right: np.ndarray) -> dict:

@@ -66,16 +66,15 @@ def score(text: str) -> float:
 
 
 def scene_nms(text: str):
-    """An IoU in [0, 1), or "off" (parq_runtime.scene.SCENE_NMS_OFF)."""
-    if text.strip().lower() == "off":
-        return "off"
+    """An IoU in [0, 1) (as :func:`score`), or SCENE_NMS_OFF."""
+    from .fusion import SCENE_NMS_OFF
+
+    if text.strip().lower() == SCENE_NMS_OFF:
+        return SCENE_NMS_OFF
     try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an IoU or 'off'") from None
-    if not 0.0 <= value < 1.0:
-        raise argparse.ArgumentTypeError(f"{value} must be at least 0 and below 1, or 'off'")
-    return value
+        return score(text)
+    except argparse.ArgumentTypeError as e:
+        raise argparse.ArgumentTypeError(f"{e}, or {SCENE_NMS_OFF!r}") from None
 
 
 def ray_ratio(text: str) -> float:

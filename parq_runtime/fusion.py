@@ -55,6 +55,7 @@ from .iou import iou_matrix
 
 MATCH_IOU = 0.1
 MODES = ("best", "mean", "ray")
+SCENE_NMS_OFF = "off"  # a run setting's word for no scene NMS, whatever the card says
 RAY_RATIO = 10.0     # along-ray / across-ray variance of a detection's center, ``ray`` mode
 # The authors' fusion: the best-scoring member stands for its cluster, every cluster kept.
 AUTHORS_MODE = "best"

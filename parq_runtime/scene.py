@@ -11,7 +11,7 @@ import numpy as np
 
 from . import keyframes, mirror
 from .detector import FeatureCache
-from .fusion import SceneFusion
+from .fusion import SCENE_NMS_OFF, SceneFusion
 from .readers import Capture
 
 
@@ -34,9 +34,6 @@ class RunSettings:
     scene_nms: float | str | None = None  # None: the model card's; SCENE_NMS_OFF: none
     mirror: bool | None = None            # also run each snippet's mirror image; None: the
                                           # model card's run setting
-
-
-SCENE_NMS_OFF = "off"
 
 
 def scene_nms(settings: RunSettings, card) -> float | None:

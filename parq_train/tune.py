@@ -147,6 +147,17 @@ def score_supports(records: list, threshold: float, region, classes, fusion: str
                    scene_nms: float | None = None) -> dict:
     """{support: :func:`score`'s metrics} for each of ``supports``, from one fusion of each
     scene (the support only filters the fused boxes)."""
+    fused = fuse_records(records, threshold, region, fusion, ray_ratio, mirror, scene_nms)
+    return {s: evaluation.evaluate([(f.boxes_with_support(s), truth, up)
+                                    for f, truth, up in fused], classes) for s in supports}
+
+
+def fuse_records(records: list, threshold: float, region, fusion: str,
+                 ray_ratio: float = RAY_RATIO, mirror: bool = False,
+                 scene_nms: float | None = None) -> list:
+    """Per scene of ``records`` (run_once's): (its SceneFusion, support 1, of the snippet boxes
+    scoring above ``threshold`` whose local centers lie in ``region``, truth, up); with
+    ``mirror`` each snippet's mirror-image run is fused as parq-run --mirror fuses it."""
     def kept(boxes):
         return [b for b, c in boxes if b.score > threshold
                 and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]]
@@ -161,8 +172,7 @@ def score_supports(records: list, threshold: float, region, classes, fusion: str
             else:
                 scene_boxes.add(kept(boxes), n)
         fused.append((scene_boxes, truth, up))
-    return {s: evaluation.evaluate([(f.boxes_with_support(s), truth, up)
-                                    for f, truth, up in fused], classes) for s in supports}
+    return fused
 
 
 def select(records: list, classes, thresholds=THRESHOLDS, regions=REGIONS,
@@ -235,7 +245,7 @@ def select_scene_nms(records: list, classes, best: dict, mirror: bool = False,
                      choices=SCENE_NMS) -> tuple:
     """(the best of ``best`` with each scene NMS of ``choices``, their rows), by
     :func:`best_of`: the first choice (off) wins ties."""
-    keys = ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio")
+    keys = [k for k in CHOSEN if k != "scene_nms"]    # candidate()'s order
     rows = [candidate(records, classes, *(best[k] for k in keys), mirror, nms)
             for nms in choices]
     return best_of(rows), rows
