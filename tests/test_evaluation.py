@@ -149,6 +149,23 @@ def test_mean_fusion_averages_the_best_class_weighted_by_score():
     np.testing.assert_allclose(best.boxes[0].center, [0.2, 0, 0.5])
 
 
+def test_mean_fusion_averages_sizes_in_the_best_detections_axes():
+    """A table 2 m long and 1 m deep, detected once as it is and once turned by 90 degrees with
+    its extents swapped (the same box): the fused box is the table, not a 1.5 m square."""
+    table = dict(name="table", up=geometry.UP_Z)
+    for mode in ("mean", "ray"):
+        fusion = SceneFusion(mode=mode)
+        fusion.add([box([0, 0, 0.4], size=(2.0, 0.8, 1.0), yaw=0.0, score=0.9, **table)], 0)
+        fusion.add([box([0, 0, 0.4], size=(1.0, 0.8, 2.0), yaw=np.pi / 2 + 0.1, score=0.9,
+                        **table)], 1)
+        fusion.add([box([0, 0, 0.4], size=(2.2, 0.8, 1.2), yaw=np.pi - 0.2, score=0.9,
+                        **table)], 2)
+        (fused,) = fusion.boxes
+        np.testing.assert_allclose(fused.size, [(2.0 + 2.0 + 2.2) / 3, 0.8, (1 + 1 + 1.2) / 3])
+        truth = box([0, 0, 0.4], size=(2.0, 0.8, 1.0), **table)
+        assert iou_matrix([fused], [truth], geometry.UP_Z)[0, 0] > 0.9
+
+
 def seen_from(b, viewpoint):
     return dataclasses.replace(b, viewpoint=np.asarray(viewpoint, float))
 
