@@ -70,6 +70,9 @@ class PARQConfig:
     min_support: int = scene_fusion.AUTHORS_MIN_SUPPORT  # snippets that must see a box
     ray_ratio: float = scene_fusion.RAY_RATIO   # along / across the ray, "ray" fusion only
     scene_nms: float | None = None    # IoU of one object's scene boxes; None: off
+    # classes pulled to stand on the floor found in the images (parq_runtime.floor); (): none
+    floor_classes: tuple = ()
+    floor_weight: float = scene_fusion.FLOOR_WEIGHT
     # learned queries, most useful first (parq_train.tune): a run with fewer queries starts
     # from the first ones; () = farthest-point sampling (parq_runtime.queries)
     query_order: tuple = ()
@@ -107,7 +110,11 @@ class PARQConfig:
             problems.append(f"image_size {self.image_size}: width and height must be "
                             "multiples of 4, at least 32")
         problems += scene_fusion.problems(self.fusion, self.min_support, self.ray_ratio,
-                                          self.scene_nms)
+                                          self.scene_nms, tuple(self.floor_classes),
+                                          self.floor_weight)
+        unknown = [c for c in self.floor_classes if c not in self.classes]
+        if unknown:
+            problems.append(f"floor_classes {unknown} are not among the classes")
         if self.query_order and sorted(self.query_order) != list(range(self.num_queries)):
             problems.append(f"query_order must be a permutation of the {self.num_queries} "
                             "learned queries")

@@ -7,6 +7,7 @@ below say what was expected in that line.
 from __future__ import annotations
 
 import argparse
+import math
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -75,6 +76,21 @@ def scene_nms(text: str):
         return score(text)
     except argparse.ArgumentTypeError as e:
         raise argparse.ArgumentTypeError(f"{e}, or {SCENE_NMS_OFF!r}") from None
+
+
+def floor_height(text: str):
+    """A height in metres along the world's up axis, or scene.FLOOR_OFF."""
+    from .scene import FLOOR_OFF      # here, as scene_nms does: keeps other CLIs' imports light
+
+    if text.strip().lower() == FLOOR_OFF:
+        return FLOOR_OFF
+    try:
+        value = number(text)
+    except argparse.ArgumentTypeError as e:
+        raise argparse.ArgumentTypeError(f"{e}, or {FLOOR_OFF!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{value} is not a finite height, or {FLOOR_OFF!r}")
+    return value
 
 
 def ray_ratio(text: str) -> float:

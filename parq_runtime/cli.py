@@ -7,7 +7,8 @@ import os
 import pathlib
 import sys
 
-from .arguments import (OneLineParser, non_negative_float, positive_int, ray_ratio, scene_nms,
+from .arguments import (OneLineParser, floor_height, non_negative_float, positive_int, ray_ratio,
+                        scene_nms,
                         score)
 from .errors import ParqError
 
@@ -73,6 +74,12 @@ def parser() -> argparse.ArgumentParser:
                    help="report one scene box per object: of two scene boxes of one class "
                         "overlapping by more than this IoU, only the better-scoring; 'off' "
                         "reports both, as the authors' protocol (default: the model card's)")
+    p.add_argument("--floor", type=floor_height, default=None, metavar="HEIGHT|off",
+                   help="the floor's height along the world's up axis in metres, when known "
+                        "(an AR session's floor plane, say); with ray fusion, boxes of the "
+                        "card's floor classes are pulled to stand on it. 'off': no floor "
+                        "prior. Default: found in the images by a plane sweep when the card "
+                        "names floor classes (none found: no prior)")
     p.add_argument("--min-support", type=positive_int, default=None,
                    help="report a scene box only when at least this many snippets detect it "
                         "(runs, with mirror runs: two a snippet; default: the model card's, "
@@ -168,7 +175,8 @@ def run(args) -> int:
         score_threshold=args.score_threshold, region=not args.all_regions, form=args.form,
         keyframe_angle=args.keyframe_angle, keyframe_distance=args.keyframe_distance,
         max_snippets=args.max_snippets, fusion=args.fusion, min_support=args.min_support,
-        ray_ratio=args.ray_ratio, scene_nms=args.scene_nms, mirror=args.mirror)
+        ray_ratio=args.ray_ratio, scene_nms=args.scene_nms, mirror=args.mirror,
+        floor=args.floor)
     settings = scene.resolved(settings, detector.card)      # the card's iters / queries
     detector.reference_points(settings.queries)  # argument check before the long part
     keys, snippets = scene.plan(capture, settings, detector.card)
@@ -193,6 +201,14 @@ def run(args) -> int:
     if not args.quiet:
         for note in capture.notes:      # after the run: an error stays a single line
             print(f"parq-run: note: {note}", file=sys.stderr)
+        if result.floor is not None:
+            where = "given" if result.floor["source"] == "given" else "found in the images"
+            print(f"parq-run: note: floor at {result.floor['height']:+.3f} m along up "
+                  f"({where}); {', '.join(result.fusion.floor_classes)} stand on it",
+                  file=sys.stderr)
+        elif result.fusion.floor_classes:
+            print("parq-run: note: no floor found in the images near the boxes' bottoms; no "
+                  "box was pulled to one", file=sys.stderr)
         extra = f", {images} images in {args.vis}" if args.vis is not None else ""
         where = f" -> {args.output}" if args.output is not None else ""
         print(f"parq-run: {len(result.snippets)} snippets, {len(result.fusion.boxes)} scene "

@@ -117,6 +117,16 @@ class ModelCard:
         return None if value is None else float(value)
 
     @property
+    def floor_classes(self) -> tuple:
+        """Classes whose boxes stand on the floor, pulled to it once it is found in the images
+        (parq_runtime.fusion, parq_runtime.floor; empty, and cards before it: none)."""
+        return tuple(self.raw["postprocess"].get("floor_classes", ()))
+
+    @property
+    def floor_weight(self) -> float:
+        return float(self.raw["postprocess"].get("floor_weight", fusion.FLOOR_WEIGHT))
+
+    @property
     def snippet_gap(self) -> int:
         """Keyframes between a snippet's views the model was trained with (1: consecutive, the
         authors'; cards written before it was recorded have 1)."""
@@ -226,7 +236,13 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
     post = raw["postprocess"] if isinstance(raw["postprocess"], dict) else {}
     found = fusion.problems(post.get("fusion", fusion.AUTHORS_MODE),
                             post.get("min_support", fusion.AUTHORS_MIN_SUPPORT),
-                            post.get("ray_ratio", fusion.RAY_RATIO), post.get("scene_nms"))
+                            post.get("ray_ratio", fusion.RAY_RATIO), post.get("scene_nms"),
+                            post.get("floor_classes", ()),
+                            post.get("floor_weight", fusion.FLOOR_WEIGHT))
+    unknown = [c for c in post.get("floor_classes", ()) if c not in card.classes] \
+        if isinstance(post.get("floor_classes", ()), (list, tuple)) else []
+    if unknown:
+        found.append(f"floor_classes {unknown} are not among the card's classes")
     if found:
         raise ParqError(f"{path}: postprocess: {'; '.join(found)}")
     snippets = raw.get("snippets", {})

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import keyframes, mirror
+from . import floor, keyframes, mirror
 from .detector import FeatureCache
 from .fusion import SCENE_NMS_OFF, SceneFusion
 from .readers import Capture
@@ -34,6 +34,11 @@ class RunSettings:
     scene_nms: float | str | None = None  # None: the model card's; SCENE_NMS_OFF: none
     mirror: bool | None = None            # also run each snippet's mirror image; None: the
                                           # model card's run setting
+    floor: float | str | None = None      # the floor's height along up (metres), FLOOR_OFF,
+                                          # or None: found in the images when the card has
+                                          # floor classes (parq_runtime.floor)
+
+FLOOR_OFF = "off"
 
 
 def scene_nms(settings: RunSettings, card) -> float | None:
@@ -63,6 +68,8 @@ class SceneResult:
     seconds: float = 0.0
     gap: int = 1          # keyframes between a snippet's views, as run
     mirror: bool = False  # whether each snippet was also run on its mirror image
+    floor: dict | None = None   # {"height", "source": "given" | "images", "candidates"};
+                                # None: no floor prior (none asked for, or none found)
 
 
 def snippet_gap(settings: RunSettings, card) -> int:
@@ -120,7 +127,9 @@ def run(detector, capture: Capture, settings: RunSettings, progress=None) -> Sce
                              mode=settings.fusion or detector.card.fusion,
                              min_support=min_support(settings, detector.card),
                              ray_ratio=settings.ray_ratio or detector.card.ray_ratio,
-                             scene_nms=scene_nms(settings, detector.card)))
+                             scene_nms=scene_nms(settings, detector.card),
+                             floor_classes=floor_classes(settings, detector.card),
+                             floor_weight=detector.card.floor_weight))
     # Overlapping windows share frames: their image features are computed once (streaming).
     # An LRU cache of span + gap - 1 frames never encodes one twice (simulated for 1-9 views,
     # gaps 1-6 and every stride below the span; tests/test_export.py runs five cases); with
@@ -155,5 +164,34 @@ def run(detector, capture: Capture, settings: RunSettings, progress=None) -> Sce
                                              reflected))
         if progress is not None:
             progress(n + 1, len(snippets))
+    result.floor = find_floor(result, settings)
     result.seconds = time.perf_counter() - start
     return result
+
+
+def floor_classes(settings: RunSettings, card) -> tuple:
+    """The classes pulled to the floor: the card's; none with ``--floor off`` or a fusion
+    other than ``ray`` (the pull is a term of its solve)."""
+    if settings.floor == FLOOR_OFF or (settings.fusion or card.fusion) != "ray":
+        return ()
+    return card.floor_classes
+
+
+def find_floor(result: SceneResult, settings: RunSettings) -> dict | None:
+    """Set the fusion's floor height: the one given, else the images' floor-like plane nearest
+    the fused boxes' bottoms (parq_runtime.floor); the record for the output (None: none)."""
+    fusion = result.fusion
+    if not fusion.floor_classes:
+        return None
+    if settings.floor is not None:
+        fusion.floor_height = float(settings.floor)
+        return {"height": fusion.floor_height, "source": "given"}
+    guess = fusion.floor_guess()
+    if guess is None:
+        return None
+    found = floor.candidates(result.capture.frames, result.capture.up, near=guess)
+    fusion.floor_height = floor.choose(found, guess)
+    if fusion.floor_height is None:
+        return None
+    return {"height": round(fusion.floor_height, 4), "source": "images",
+            "candidates": [round(h, 4) for h, _ in found]}

@@ -107,6 +107,44 @@ def test_parq_run_end_to_end(tiny_model, tmp_path, authors_names):
         assert (overlap <= 0).all()
 
 
+def test_parq_run_pulls_the_cards_floor_classes_to_a_given_floor(tiny_model, tmp_path):
+    """A card naming floor classes: --floor HEIGHT uses that floor (recorded as given) and
+    moves only the centers of those classes' scene boxes; --floor off, or a fusion other than
+    ray, turns the prior off; by default the floor comes from the images or is absent, and the
+    output says which."""
+    card = json.loads((tiny_model / "model.json").read_text())
+    classes = card["classes"]
+    card["postprocess"].update(fusion="ray", ray_ratio=10.0, floor_classes=classes[:4],
+                               floor_weight=3.0)
+    model = model_with_card(tiny_model, tmp_path / "floor-model", card)
+    folder = write_scannet(tmp_path / "scene", frames=16)
+    common = (folder, "--model", model, "--iters", 2, "--queries", 16, "--score-threshold",
+              0, "--all-regions", "-q")
+    runs = {}
+    for floor in ("off", "0.25", None):
+        code, stdout, stderr = run_cli(*common, *(("--floor", floor) if floor else ()))
+        assert code == 0, stderr
+        runs[floor] = json.loads(stdout)
+    code, stdout, stderr = run_cli(*common, "--floor", "0.25", "--fusion", "mean")
+    assert code == 0, stderr
+    assert json.loads(stdout)["capture"]["floor"] is None     # the pull is ray fusion's
+    off, given, auto = runs["off"], runs["0.25"], runs[None]
+    assert off["capture"]["floor"] is None and off["settings"]["floor_classes"] == []
+    assert given["capture"]["floor"] == {"height": 0.25, "source": "given"}
+    assert given["settings"]["floor_classes"] == classes[:4]
+    assert auto["capture"]["floor"] is None or auto["capture"]["floor"]["source"] == "images"
+    a, b = off["scene"]["boxes"], given["scene"]["boxes"]
+    assert len(a) == len(b) and a
+    moved = 0
+    for x, y in zip(a, b):
+        assert (x["class"], x["size"], x["score"]) == (y["class"], y["size"], y["score"])
+        if x["class"] in classes[:4]:
+            moved += x["center"] != y["center"]
+        else:
+            assert x["center"] == y["center"]
+    assert moved > 0
+
+
 def test_parq_run_spaces_a_snippets_views_by_the_gap(tiny_model, tmp_path):
     """--gap 2 takes every other keyframe into a snippet (the JSON records the gap); without
     the flag the model card's gap applies, and a capture too short for one such snippet is a
@@ -195,7 +233,8 @@ def test_bad_arguments(tiny_model, scannet_folder, tmp_path):
                          (["--ray-ratio", 0.5], "--ray-ratio"),
                          (["--ray-ratio", "inf"], "--ray-ratio"),
                          (["--scene-nms", 1.5], "--scene-nms"),
-                         (["--scene-nms", "none"], "--scene-nms")):
+                         (["--scene-nms", "none"], "--scene-nms"),
+                         (["--floor", "low"], "--floor"), (["--floor", "nan"], "--floor")):
         out = tmp_path / "x.json"
         _one_line_error(*run_cli(scannet_folder, "--model", tiny_model, "-o", out, *args),
                         needle)
@@ -228,6 +267,12 @@ def test_bad_model_folders(tiny_model, scannet_folder, tmp_path):
     card["postprocess"].update(ray_ratio=10.0, scene_nms=2.0)
     (old / "model.json").write_text(json.dumps(card))
     _one_line_error(*run_cli(scannet_folder, "--model", old), "model.json", "scene_nms")
+    card["postprocess"].update(scene_nms=None, floor_classes=["chair"], floor_weight=-1)
+    (old / "model.json").write_text(json.dumps(card))
+    _one_line_error(*run_cli(scannet_folder, "--model", old), "model.json", "floor_weight")
+    card["postprocess"].update(floor_classes=["unicorn"], floor_weight=3.0)
+    (old / "model.json").write_text(json.dumps(card))
+    _one_line_error(*run_cli(scannet_folder, "--model", old), "model.json", "unicorn")
 
 
 def test_bad_captures(tiny_model, tmp_path):
