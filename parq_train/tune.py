@@ -30,6 +30,14 @@ one of SCENE_NMS, by the same criterion, off winning ties.  It comes after the g
 so that it does not multiply the grid's time; it only removes boxes that the chosen candidate
 keeps.
 
+Last, the floor prior (parq_runtime.fusion, parq_runtime.floor: boxes of floor-standing classes
+pulled to stand on the floor found in the images) is chosen for that: off, or a set of classes
+and a weight (FLOOR_WEIGHTS).  The set starts from the classes that stand on their scene's
+floor in the validation ground truth (at least STANDING_SHARE of their boxes have their
+bottom within STANDING_TOLERANCE of the lowest box bottom), and classes are then dropped one
+at a time while that raises the criterion (backward elimination); off wins ties.  Each scene's
+floor is found as parq-run finds it, from its frames near the fused boxes' guess.
+
 Before that, a checkpoint's learned queries are ranked (``query_order``, see
 parq_runtime.queries; a model folder keeps its own ranking): one pass with all of them, each
 query scored by the snippet detections it makes above score 0.7, +1 for each that overlaps a
@@ -58,10 +66,11 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from parq_runtime import evaluation, geometry, readers, scene
+from parq_runtime import evaluation, floor, geometry, readers, scene
 from parq_runtime.arguments import OneLineParser, positive_int
 from parq_runtime.errors import ParqError
-from parq_runtime.fusion import AUTHORS_MIN_SUPPORT, AUTHORS_MODE, RAY_RATIO, SceneFusion
+from parq_runtime.fusion import (AUTHORS_MIN_SUPPORT, AUTHORS_MODE, FLOOR_WEIGHT, RAY_RATIO,
+                                 SceneFusion)
 from parq_runtime.iou import iou_matrix
 
 THRESHOLDS = tuple(np.round(np.arange(0.3, 0.951, 0.05), 2))
@@ -82,8 +91,11 @@ MIRROR_FUSIONS = ((AUTHORS_MODE, AUTHORS_MIN_SUPPORT, RAY_RATIO),) + tuple(
 RANKING_SCORE, RANKING_IOU, FALSE_WEIGHT = 0.7, 0.25, 0.5  # how query_utility counts
 AUTHORS = {"score_threshold": 0.8, "eval_region": list(REGIONS[0]), "fusion": FUSIONS[0][0],
            "min_support": FUSIONS[0][1], "scene_nms": None}
-CHOSEN = ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio", "scene_nms")
+CHOSEN = ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio", "scene_nms",
+          "floor_classes", "floor_weight")
 SCENE_NMS = (None, 0.0, 0.05, 0.1, 0.2, 0.3)   # None: off, the authors' protocol
+FLOOR_WEIGHTS = (FLOOR_WEIGHT, 10.0)           # the first is the runtime's default
+STANDING_SHARE, STANDING_TOLERANCE = 0.9, 0.02  # a floor class: 90% of its boxes within 2 cm
 
 
 def run_once(detector, folders, iters: int, queries: int, stride: int | None = None,
@@ -235,9 +247,11 @@ def candidate(records: list, classes, threshold: float, region, fusion: str, min
 
 
 def row_of(threshold: float, region, fusion: str, min_support: int, ray_ratio: float,
-           metrics: dict, scene_nms: float | None = None) -> dict:
+           metrics: dict, scene_nms: float | None = None, floor_classes=(),
+           floor_weight: float = FLOOR_WEIGHT) -> dict:
     return {"score_threshold": threshold, "eval_region": list(region), "fusion": fusion,
             "min_support": min_support, "ray_ratio": ray_ratio, "scene_nms": scene_nms,
+            "floor_classes": list(floor_classes), "floor_weight": floor_weight,
             **{f"f1@{k}": round(metrics[k]["f1"], 4) for k in metrics}}
 
 
@@ -245,10 +259,69 @@ def select_scene_nms(records: list, classes, best: dict, mirror: bool = False,
                      choices=SCENE_NMS) -> tuple:
     """(the best of ``best`` with each scene NMS of ``choices``, their rows), by
     :func:`best_of`: the first choice (off) wins ties."""
-    keys = [k for k in CHOSEN if k != "scene_nms"]    # candidate()'s order
+    keys = CHOSEN[:CHOSEN.index("scene_nms")]         # candidate()'s order
     rows = [candidate(records, classes, *(best[k] for k in keys), mirror, nms)
             for nms in choices]
     return best_of(rows), rows
+
+
+def standing_classes(records: list, classes) -> list:
+    """The classes (in ``classes``' order) of which at least STANDING_SHARE of the ground-truth
+    boxes in ``records`` have their bottom within STANDING_TOLERANCE of their scene's floor,
+    taken as the lowest box bottom of the scene."""
+    standing, seen = {}, {}
+    for _, truth, up in records:
+        if not truth:
+            continue
+        up = np.asarray(up, dtype=np.float64)
+        bottoms = [float(b.center @ up) - b.size[1] / 2 for b in truth]
+        lowest = min(bottoms)
+        for b, bottom in zip(truth, bottoms):
+            seen[b.class_name] = seen.get(b.class_name, 0) + 1
+            standing[b.class_name] = standing.get(b.class_name, 0) + (
+                bottom - lowest <= STANDING_TOLERANCE)
+    return [c for c in classes if seen.get(c) and standing[c] >= STANDING_SHARE * seen[c]]
+
+
+def select_floor(records: list, classes, best: dict, sweep, mirror: bool = False) -> tuple:
+    """(``best`` with the floor prior chosen, the rows tried): off, then the standing classes
+    at each of FLOOR_WEIGHTS, then backward elimination of classes at the better weight, by
+    :func:`best_of` (off, and the larger set, win ties).  ``sweep(scene, guess)``: the floor
+    candidates of the ``scene``-th scene of ``records`` near ``guess`` (floor.candidates);
+    a floor is chosen from them as parq-run chooses it."""
+    fused = fuse_records(records, best["score_threshold"], best["eval_region"], best["fusion"],
+                         best["ray_ratio"], mirror, best["scene_nms"])
+    for fusion, _, _ in fused:
+        fusion.min_support = best["min_support"]
+
+    def row(floor_classes, weight):
+        pairs = []
+        for n, (fusion, truth, up) in enumerate(fused):
+            fusion.floor_classes, fusion.floor_weight = tuple(floor_classes), weight
+            fusion.floor_height = None
+            guess = fusion.floor_guess() if floor_classes else None
+            if guess is not None:
+                fusion.floor_height = floor.choose(sweep(n, guess), guess)
+            pairs.append((fusion.boxes, truth, up))
+        return row_of(best["score_threshold"], best["eval_region"], best["fusion"],
+                      best["min_support"], best["ray_ratio"], evaluation.evaluate(pairs, classes),
+                      best["scene_nms"], floor_classes, weight)
+
+    rows = [row((), FLOOR_WEIGHT)]
+    chosen = standing_classes(records, classes)
+    if not chosen or best["fusion"] != "ray":
+        return rows[0], rows
+    rows += [row(chosen, w) for w in FLOOR_WEIGHTS]
+    current = best_of(rows[1:])
+    weight = current["floor_weight"]
+    while len(chosen) > 1:
+        tried = [row([c for c in chosen if c != drop], weight) for drop in chosen]
+        rows += tried
+        better = best_of([current] + tried)
+        if better is current:
+            break
+        current, chosen = better, better["floor_classes"]
+    return best_of([rows[0], current]), rows
 
 
 def best_of(table: list) -> dict:
@@ -301,13 +374,30 @@ def record_of(args, folders, best, table, ranking) -> dict:
             "chosen": best, "authors_settings": authors, "query_ranking": ranking}
 
 
-def choose(records: list, classes, args) -> tuple:
+def choose(records: list, classes, args, folders: list) -> tuple:
     """:func:`select` over the grid for the run setting of ``args`` (with or without mirror
-    runs), then :func:`select_scene_nms` for its best; the table ends with the NMS rows."""
+    runs), then :func:`select_scene_nms` for its best, then :func:`select_floor` with the
+    floors of the scenes ``folders``; the table ends with the NMS rows, then the floor's."""
     best, table = select(records, classes, fusions=MIRROR_FUSIONS if args.mirror else FUSIONS,
                          mirror=args.mirror, jobs=args.jobs)
     best, rows = select_scene_nms(records, classes, best, args.mirror)
-    return best, table + rows
+    best, floor_rows = select_floor(records, classes, best, floor_sweep(folders), args.mirror)
+    return best, table + rows + floor_rows
+
+
+def floor_sweep(folders: list):
+    """select_floor's ``sweep`` for the validation scenes ``folders`` (records' order): each
+    scene's floor candidates near a guess, as parq-run computes them (cached per guess)."""
+    captures, cache = {}, {}
+
+    def sweep(n: int, guess: float) -> list:
+        if (n, guess) not in cache:
+            if n not in captures:
+                captures[n] = readers.open_capture(folders[n])
+            capture = captures[n]
+            cache[n, guess] = floor.candidates(capture.frames, capture.up, near=guess)
+        return cache[n, guess]
+    return sweep
 
 
 def run(args) -> int:
@@ -338,7 +428,7 @@ def run_folder(args, folders) -> int:
     if args.output.exists():
         raise ParqError(f"{args.output}: already exists (a model folder is written new)")
     records = run_once(detector, folders, args.iters, args.queries, mirror=args.mirror)
-    best, table = choose(records, detector.classes, args)
+    best, table = choose(records, detector.classes, args, folders)
     previous = detector.card.raw.get("extra", {}).get("postprocess_tuning") or {}
     ranking = previous.get("query_ranking")
     if ranking:
@@ -385,14 +475,15 @@ def run_checkpoint(args, folders) -> int:
             records = run_once(detector, folders, args.iters, args.queries,
                                mirror=args.mirror)
         classes = detector.classes
-    best, table = choose(records, classes, args)
+    best, table = choose(records, classes, args, folders)
     record = record_of(args, folders, best, table, ranking)
     model = loaded.model()
     extra = dict(loaded.config.extra, postprocess_tuning=record)
     model.config = loaded.config.replace(
         score_threshold=best["score_threshold"], eval_region=tuple(best["eval_region"]),
         fusion=best["fusion"], min_support=best["min_support"], ray_ratio=best["ray_ratio"],
-        scene_nms=best["scene_nms"],
+        scene_nms=best["scene_nms"], floor_classes=tuple(best["floor_classes"]),
+        floor_weight=best["floor_weight"],
         run_iters=args.iters, run_queries=args.queries, run_mirror=args.mirror, extra=extra,
         query_order=tuple(order))
     metadata = {"tuning_table": table}

@@ -106,6 +106,42 @@ def test_tune_picks_the_threshold_and_region_that_separate_true_from_false_boxes
     assert everything["f1@0.25"] == 0.5     # 1 of 3 predictions right, the one box found
 
 
+def test_tune_turns_the_floor_on_when_it_helps_and_knows_which_classes_stand():
+    """A chair (center 0.4 m up, 0.8 m tall) seen from a camera at eye height in two snippets,
+    both times 0.4 m too far along the viewing ray: the ray fusion cannot fix that (F1 0), a
+    floor at z = 0 pulls it back (F1 1), so tune chooses the floor for chairs.  A floor the
+    sweep puts 0.5 m off is no floor (too far from the boxes' guess): off wins the tie.  A
+    display standing on a table is not a floor class."""
+    from parq_runtime.boxes import Box
+    from parq_runtime.geometry import box_corners
+    from parq_train import tune
+
+    camera = np.array([0.0, 0.0, 1.5])
+    R = np.stack([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]], -1)       # object y (up) = world z
+
+    def box(center, name="chair", score=0.9, size=(0.5, 0.8, 0.5)):
+        c, s = np.asarray(center, float), np.asarray(size, float)
+        label = ["chair", "display"].index(name)
+        return Box(c, s, R, 0.0, label, name, score, box_corners(c, s, R), viewpoint=camera)
+
+    truth_center = np.array([3.0, 0.0, 0.4])
+    ray = (truth_center - camera) / np.linalg.norm(truth_center - camera)
+    seen = box(truth_center + 0.4 * ray)
+    records = [([[(seen, seen.center)], [(seen, seen.center)]], [box(truth_center, score=1.0)],
+                (0.0, 0.0, 1.0))]
+    best, _ = tune.select(records, ["chair"], thresholds=(0.5,), regions=tune.REGIONS[-1:],
+                          fusions=(("ray", 1, 30.0),))
+    assert best["f1@0.25"] == 0.0 and best["floor_classes"] == []
+    chosen, rows = tune.select_floor(records, ["chair"], best, lambda n, guess: [(0.0, 0.1)])
+    assert (chosen["floor_classes"], chosen["f1@0.25"]) == (["chair"], 1.0)
+    assert rows[0]["floor_classes"] == [] and rows[0]["f1@0.25"] == 0.0
+    chosen, _ = tune.select_floor(records, ["chair"], best, lambda n, guess: [(0.5, 0.1)])
+    assert chosen["floor_classes"] == [] and chosen["f1@0.25"] == 0.0
+    on_table = [box([1.0, 1.0, 0.95], "display", size=(0.5, 0.5, 0.1)), box([1.0, 1.0, 0.4])]
+    assert tune.standing_classes([([], on_table, (0.0, 0.0, 1.0))] + records,
+                                 ["chair", "display"]) == ["chair"]
+
+
 def test_tune_chooses_scene_nms_after_the_grid_and_off_on_ties():
     """Two detections of each of two snippets on one chair grow two scene boxes: the grid's
     best keeps both (F1 2/3); scene NMS at the first IoU they exceed reports one (F1 1);
