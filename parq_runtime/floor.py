@@ -21,11 +21,12 @@ the scene's fused boxes give a coarse guess first (the median bottom of its floo
 fusion.SceneFusion.floor_guess); the sweep runs within ``TOLERANCE`` of it, and
 :func:`choose` takes the candidate nearest it, or none (then no box is pulled).
 
-Measured on the demo's held-out scenes (parq-synth, floor at z = 0): the floor is found in
-103 of 120, with a median error of 6 mm (90% within 3.2 cm), in a median 0.28 s a capture on
-2 cores.  In the other 17 (5 of the 22 carpets, 8 of 48 plank floors, 4 of 50 tiled) no dip
-lay near the guess, and no box was pulled.  What it gives the demo: docs/demo-experiments.md,
-"The floor, found in the images".
+Measured with the demo on its 120 held-out scenes (parq-synth, floor at z = 0;
+``python benchmarks/floor.py --scenes 120``, benchmarks/results/floor.md): a floor is found in
+100, with a median error of 6 mm (90% within 3.3 cm, 11 over 3 cm, the worst 12 cm), in a
+median 0.19 s a capture on 2 cores (160x120 frames).  In the other 20 (6 of the 22 carpets, 9
+of 48 plank floors, 5 of 50 tiled) no dip lay near the guess, and no box was pulled.  What it
+gives the demo: docs/demo-experiments.md, "The floor, found in the images".
 """
 from __future__ import annotations
 

@@ -40,7 +40,8 @@ box's height with weight ``floor_weight`` (the detections' weights sum to 1, and
 across its ray).  The viewing rays point down at furniture, so that height fixes much of the
 depth along them.  It changes only the reported boxes, after the support filter and scene NMS;
 the matching sees the boxes without it.  On the demo's 120 held-out scenes, with the floor
-found in 98 of them: F1@0.25 +0.035, F1@0.5 +0.019 (docs/demo-experiments.md, "The floor").
+found in 100 of them: F1@0.25 +0.037 (+0.023 to +0.051, paired), F1@0.5 +0.020
+(docs/demo-experiments.md, "The floor, found in the images").
 
 ``min_support``: a scene box is reported only when detections from at least that many
 snippets support it; spurious detections rarely recur, real objects seen from several
@@ -57,8 +58,9 @@ at its card's threshold and region: mean/2 0.494 / 0.274, ray/2 (ratio 5) 0.534 
 (ratio 5) and 0.482 / 0.274 (ratio 10).  Chosen again on 160 validation scenes for the
 demo's run setting (2 iterations x 64 queries), the ratio is 30: 0.489 / 0.307 on 120 held-out
 scenes (README); with mirror runs, the card's run setting since, support 4 runs: 0.504 / 0.354;
-with scene NMS 0.05 after that, the current card: 0.523 / 0.349; with sizes averaged in one
-box's axes (``aligned_size``), 0.540 / 0.356.
+with scene NMS 0.05 after that: 0.523 / 0.349; with sizes averaged in one box's axes
+(``aligned_size``), 0.540 / 0.356; with the floor prior (the current card: scene NMS 0.1, five
+floor classes at weight 3), 0.577 / 0.375.
 """
 from __future__ import annotations
 

@@ -27,7 +27,7 @@ def test_demo_folder_is_small_and_its_card_says_how_it_was_made():
     assert sum(training["minutes"].values()) <= 90
     tuning = card["extra"]["postprocess_tuning"]
     for key in ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio",
-                "scene_nms"):
+                "scene_nms", "floor_classes", "floor_weight"):
         assert tuning["chosen"][key] == card["postprocess"][key], key
     # the run setting parq-run uses by default is the one the post-processing was chosen for
     assert (tuning["iters"], tuning["queries"], tuning.get("mirror", False)) == (
@@ -63,6 +63,10 @@ def test_demo_detects_objects_of_its_sample_scene():
     assert (centers[:, :2] < corners[:, :2].max(0) + 1.0).all()
     sizes = np.array([b.size for b in result.fusion.boxes])
     assert ((sizes > 0.05) & (sizes < 4.0)).all()
+    # the card pulls its floor classes to the floor, which the images put at the room's
+    # (parq-synth: z = 0, the lowest ground-truth box bottom)
+    assert det.card.floor_classes and result.floor["source"] == "images"
+    assert abs(result.floor["height"]) < 0.02
     # every detection knows the camera it was seen from: its snippet frame's origin, the
     # middle view's camera (what ray fusion triangulates with)
     for s in result.snippets:
