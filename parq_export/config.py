@@ -111,10 +111,7 @@ class PARQConfig:
                             "multiples of 4, at least 32")
         problems += scene_fusion.problems(self.fusion, self.min_support, self.ray_ratio,
                                           self.scene_nms, tuple(self.floor_classes),
-                                          self.floor_weight)
-        unknown = [c for c in self.floor_classes if c not in self.classes]
-        if unknown:
-            problems.append(f"floor_classes {unknown} are not among the classes")
+                                          self.floor_weight, self.classes)
         if self.query_order and sorted(self.query_order) != list(range(self.num_queries)):
             problems.append(f"query_order must be a permutation of the {self.num_queries} "
                             "learned queries")

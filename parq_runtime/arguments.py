@@ -79,8 +79,8 @@ def scene_nms(text: str):
 
 
 def floor_height(text: str):
-    """A height in metres along the world's up axis, or scene.FLOOR_OFF."""
-    from .scene import FLOOR_OFF      # here, as scene_nms does: keeps other CLIs' imports light
+    """A height in metres along the world's up axis, or FLOOR_OFF."""
+    from .fusion import FLOOR_OFF
 
     if text.strip().lower() == FLOOR_OFF:
         return FLOOR_OFF

@@ -8,8 +8,7 @@ import pathlib
 import sys
 
 from .arguments import (OneLineParser, floor_height, non_negative_float, positive_int, ray_ratio,
-                        scene_nms,
-                        score)
+                        scene_nms, score)
 from .errors import ParqError
 
 DEFAULT_MODEL = pathlib.Path(__file__).resolve().parents[1] / "models" / "parq-demo"

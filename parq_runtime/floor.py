@@ -170,6 +170,17 @@ def _refine(prepared: list, height: float) -> float:
     return best
 
 
+def locate(guess: float | None, sweep) -> tuple:
+    """(the floor height, the candidates it was chosen from) for a coarse ``guess`` (the fused
+    boxes', fusion.SceneFusion.floor_guess): ``sweep(guess)`` gives the candidates near it
+    (:func:`candidates` with ``near``), :func:`choose` picks one.  (None, []) without a
+    guess.  parq-run and parq_train.tune both find a scene's floor with it."""
+    if guess is None:
+        return None, []
+    found = sweep(guess)
+    return choose(found, guess), found
+
+
 def choose(found: list, guess: float | None, tolerance: float = TOLERANCE) -> float | None:
     """The candidate height nearest ``guess`` within ``tolerance`` (None: none, or no guess)."""
     if guess is None:

@@ -77,6 +77,7 @@ MATCH_IOU = 0.1
 FLOOR_WEIGHT = 3.0   # the floor term's weight against the detections' (which sum to 1)
 MODES = ("best", "mean", "ray")
 SCENE_NMS_OFF = "off"  # a run setting's word for no scene NMS, whatever the card says
+FLOOR_OFF = "off"      # a run setting's word for no floor prior, whatever the card says
 RAY_RATIO = 10.0     # along-ray / across-ray variance of a detection's center, ``ray`` mode
 # The authors' fusion: the best-scoring member stands for its cluster, every cluster kept.
 AUTHORS_MODE = "best"
@@ -84,16 +85,20 @@ AUTHORS_MIN_SUPPORT = 1
 
 
 def problems(mode, min_support, ray_ratio=RAY_RATIO, scene_nms=None, floor_classes=(),
-             floor_weight=FLOOR_WEIGHT) -> list:
+             floor_weight=FLOOR_WEIGHT, classes=None) -> list:
     """What is wrong with a fusion mode, minimum support, ray ratio, scene NMS IoU and floor
-    prior (empty when all are valid); SceneFusion, the model card and the exporter's PARQConfig
-    all check with it."""
+    prior (empty when all are valid); ``classes``: the model's, which the floor classes must be
+    among (None: not checked).  SceneFusion, the model card and the exporter's PARQConfig all
+    check with it."""
     found = []
     if not isinstance(floor_classes, (list, tuple)) or not all(
             isinstance(c, str) for c in floor_classes):
         found.append(f"fusion floor_classes {floor_classes!r} must be a list of class names")
     elif floor_classes and mode != "ray":
         found.append(f"fusion floor_classes need the ray mode, not {mode!r}")
+    elif classes is not None and any(c not in classes for c in floor_classes):
+        found.append(f"fusion floor_classes {[c for c in floor_classes if c not in classes]} "
+                     "are not among the model's classes")
     if isinstance(floor_weight, bool) or not isinstance(floor_weight, (int, float)) \
             or not 0.0 < floor_weight < float("inf"):
         found.append(f"fusion floor_weight {floor_weight!r} must be a number > 0")

@@ -238,11 +238,7 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
                             post.get("min_support", fusion.AUTHORS_MIN_SUPPORT),
                             post.get("ray_ratio", fusion.RAY_RATIO), post.get("scene_nms"),
                             post.get("floor_classes", ()),
-                            post.get("floor_weight", fusion.FLOOR_WEIGHT))
-    unknown = [c for c in post.get("floor_classes", ()) if c not in card.classes] \
-        if isinstance(post.get("floor_classes", ()), (list, tuple)) else []
-    if unknown:
-        found.append(f"floor_classes {unknown} are not among the card's classes")
+                            post.get("floor_weight", fusion.FLOOR_WEIGHT), card.classes)
     if found:
         raise ParqError(f"{path}: postprocess: {'; '.join(found)}")
     snippets = raw.get("snippets", {})

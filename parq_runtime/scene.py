@@ -11,7 +11,7 @@ import numpy as np
 
 from . import floor, keyframes, mirror
 from .detector import FeatureCache
-from .fusion import SCENE_NMS_OFF, SceneFusion
+from .fusion import FLOOR_OFF, SCENE_NMS_OFF, SceneFusion
 from .readers import Capture
 
 
@@ -37,8 +37,6 @@ class RunSettings:
     floor: float | str | None = None      # the floor's height along up (metres), FLOOR_OFF,
                                           # or None: found in the images when the card has
                                           # floor classes (parq_runtime.floor)
-
-FLOOR_OFF = "off"
 
 
 def scene_nms(settings: RunSettings, card) -> float | None:
@@ -186,11 +184,11 @@ def find_floor(result: SceneResult, settings: RunSettings) -> dict | None:
     if settings.floor is not None:
         fusion.floor_height = float(settings.floor)
         return {"height": fusion.floor_height, "source": "given"}
-    guess = fusion.floor_guess()
-    if guess is None:
-        return None
-    found = floor.candidates(result.capture.frames, result.capture.up, near=guess)
-    fusion.floor_height = floor.choose(found, guess)
+    capture = result.capture
+
+    def sweep(guess):
+        return floor.candidates(capture.frames, capture.up, near=guess)
+    fusion.floor_height, found = floor.locate(fusion.floor_guess(), sweep)
     if fusion.floor_height is None:
         return None
     return {"height": round(fusion.floor_height, 4), "source": "images",

@@ -298,10 +298,8 @@ def select_floor(records: list, classes, best: dict, sweep, mirror: bool = False
         pairs = []
         for n, (fusion, truth, up) in enumerate(fused):
             fusion.floor_classes, fusion.floor_weight = tuple(floor_classes), weight
-            fusion.floor_height = None
-            guess = fusion.floor_guess() if floor_classes else None
-            if guess is not None:
-                fusion.floor_height = floor.choose(sweep(n, guess), guess)
+            fusion.floor_height = floor.locate(fusion.floor_guess(),
+                                               lambda guess: sweep(n, guess))[0]
             pairs.append((fusion.boxes, truth, up))
         return row_of(best["score_threshold"], best["eval_region"], best["fusion"],
                       best["min_support"], best["ray_ratio"], evaluation.evaluate(pairs, classes),
