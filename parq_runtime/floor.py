@@ -28,17 +28,20 @@ median 0.19 s a capture on 2 cores (160x120 frames).  In the other 20 (6 of the 
 of 48 plank floors, 5 of 50 tiled) no dip lay near the guess, and no box was pulled.  What it
 gives the demo: docs/demo-experiments.md, "The floor, found in the images".
 
-Why 12 pairs (``PAIRS``).  More pairs find no more floors.  On the 160 validation scenes, with
-the card's fused boxes giving the guesses:
+Why 12 pairs (``PAIRS``).  More pairs find no more floors.  On the 160 validation scenes, each
+swept near one saved guess (the median bottom of an exploratory fusion's boxes: scene NMS 0.05,
+seven floor classes):
 
 * 12, 24 and 48 pairs find a floor in 141, 141 and 139 scenes;
 * of those, 19, 15 and 13 are more than 3 cm off;
 * a sweep takes 0.12, 0.25 and 0.48 s.
 
-The validation F1@0.25 / F1@0.5 through the card's fusion moves by at most 0.002: 0.573 /
-0.402, 0.573 / 0.400 and 0.574 / 0.402.  The true floor in all 160 scenes would give 0.579 /
-0.415.  On the held-out scenes, 24 pairs find 105 floors against 103, again 11 of them more
-than 3 cm off.  (Exploratory scripts over saved detections.)
+The validation F1@0.25 / F1@0.5 through the card's fusion (its own guesses, near which those
+sweeps' candidates are chosen) moves by at most 0.002: 0.573 / 0.402, 0.573 / 0.400 and 0.574 /
+0.402.  The true floor in all 160 scenes would give 0.579 / 0.415.  On the held-out scenes with
+saved guesses of the same kind, 24 pairs find 105 floors against 12 pairs' 103 (100 above:
+parq-run's own guesses), again 11 of them more than 3 cm off.  (Exploratory scripts over saved
+detections.)
 """
 from __future__ import annotations
 
