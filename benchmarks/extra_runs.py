@@ -1,0 +1,224 @@
+"""More runs of each snippet for the scene fusion to vote on: the earlier iterations of a longer
+run, and zoomed centre crops.  Chosen and scored on validation scenes only (nothing here was
+kept, so the held-out scenes were not spent on it).
+
+Mirror runs (parq_runtime.mirror) added a second, different look at every snippet and gained
++0.015 / +0.047; the demo's gap to F1@0.25 0.6 is in reach (docs/demo-experiments.md), so this
+asks whether more looks of other kinds add more.  Each validation scene is run once, every
+snippet plain and mirrored, keeping every box (threshold 0, no region):
+
+* ``iterations``: one 4-iteration run each way, its boxes decoded after every iteration (the
+  boxes of iteration k are those of a k-iteration run: the loop does not look ahead);
+* ``crop C``: a 2-iteration run each way on each view's centre crop of C of its width and
+  height (intrinsics shifted with it, resized to the network size as any frame is): a narrower
+  camera, 1/C the pixels on what it keeps.  Training drew focal lengths within +-10%; a crop
+  of 0.85 is 1.18x.
+
+Then sets of these runs are fused as parq-run fuses the card's two (ray fusion, the card's
+ratio, region, scene NMS and floor prior, the floor found in the images), support counting
+runs, for each score threshold and support of a small grid.  Printed and written: each set's
+best row by F1@0.25 + F1@0.5, and its paired difference from the card's own setting (2
+iterations, plain + mirrored, the card's threshold and support) over 10,000 resamples of the
+scenes (spread.py).  Writes results/extra_runs.{md,json} (--out).
+
+    python benchmarks/extra_runs.py --val data/val data/val2
+"""
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+import common
+import spread
+from parq_train import tune
+
+THRESHOLDS = (0.75, 0.8, 0.85)
+ITERATIONS = 4
+CROP_ITERATIONS = 2
+
+
+def centre_crop(images: list, K: np.ndarray, fraction: float) -> tuple:
+    """Each view's centre crop of ``fraction`` of its width and height, with its intrinsics
+    (N, 3, 3) moved to the crop's pixel grid (the principal point shifts; the focal length in
+    pixels stays, so the crop is a narrower camera)."""
+    out, K = [], np.array(K, dtype=np.float64)
+    for i, image in enumerate(images):
+        H, W = image.shape[:2]
+        w, h = int(round(W * fraction)), int(round(H * fraction))
+        x0, y0 = (W - w) // 2, (H - h) // 2
+        out.append(np.ascontiguousarray(image[y0:y0 + h, x0:x0 + w]))
+        K[i, 0, 2] -= x0
+        K[i, 1, 2] -= y0
+    return out, K
+
+
+def collect(detector, folders: list, crops: tuple, queries: int) -> tuple:
+    """(records, seconds): per scene (snippets, truth, up), a snippet a dict {(kind, mirrored):
+    [(box, its local center)]} with kind an iteration number or ("crop", C); seconds: per
+    kind of run, the median time of a snippet's two runs (plain and mirrored)."""
+    from parq_runtime import boxes as box_decoding
+    from parq_runtime import evaluation, geometry, mirror, readers, scene
+
+    records, seconds = [], {}
+    for folder in folders:
+        capture = readers.open_capture(folder)
+        settings = scene.resolved(scene.RunSettings(), detector.card)
+        _, snippets = scene.plan(capture, settings, detector.card)
+        runs_of_scene = []
+        for indices in snippets:
+            frames = [capture.frames[i] for i in indices]
+            images = [f.load_image() for f in frames]
+            K = np.stack([f.intrinsics for f in frames])
+            T_world_camera = np.stack([f.cam_to_world for f in frames])
+            runs = {}
+            looks = [(None, ITERATIONS)] + [(c, CROP_ITERATIONS) for c in crops]
+            for crop, iters in looks:
+                views = (images, K) if crop is None else centre_crop(images, K, crop)
+                start = time.perf_counter()
+                for mirrored in (False, True):
+                    inputs = (*views, T_world_camera)
+                    if mirrored:
+                        inputs = mirror.mirror_snippet(*inputs, capture.up)
+                    found = detector.detect(*inputs, iters=iters, queries=queries,
+                                            score_threshold=0.0, region=False, up=capture.up)
+                    T_local_world = geometry.invert(found.T_world_local)
+                    decoded = []
+                    for it in found.iterations:
+                        boxes = box_decoding.detections(it, found.T_world_local,
+                                                        detector.classes, 0.0,
+                                                        detector.card.nms_iou, None, capture.up)
+                        # local centers in the run's own snippet frame: the region is
+                        # symmetric in x, so a mirrored run's keeps what the plain one would
+                        decoded.append([(mirror.unmirror_box(b, capture.up) if mirrored else b,
+                                         geometry.transform(T_local_world, b.center))
+                                        for b in boxes])
+                    if crop is None:
+                        for k, boxes in enumerate(decoded):
+                            runs[k + 1, mirrored] = boxes
+                    else:
+                        runs[("crop", crop), mirrored] = decoded[-1]
+                key = f"{iters} iterations" + ("" if crop is None else f", crop {crop}")
+                seconds.setdefault(key, []).append(time.perf_counter() - start)
+            runs_of_scene.append(runs)
+        truth, up = evaluation.load_ground_truth(folder / "boxes.json")
+        records.append((runs_of_scene, truth, up))
+    return records, {k: float(np.median(v)) for k, v in seconds.items()}
+
+
+def fuse(records: list, kinds: list, card, threshold: float) -> list:
+    """Per scene, a SceneFusion (support 1) of the runs ``kinds`` (each plain and mirrored) of
+    every snippet, boxes above ``threshold`` in the card's region, with the card's fusion, and
+    its floor found as parq-run finds it (set when a support is applied: :func:`pairs`)."""
+    from parq_runtime.fusion import SceneFusion
+
+    region = card.eval_region
+    fused = []
+    for snippets, truth, up in records:
+        fusion = SceneFusion(up=up, mode=card.fusion, ray_ratio=card.ray_ratio,
+                             scene_nms=card.scene_nms, floor_classes=card.floor_classes,
+                             floor_weight=card.floor_weight)
+        for n, runs in enumerate(snippets):
+            for j, key in enumerate((kind, m) for kind in kinds for m in (False, True)):
+                kept = [b for b, c in runs[key] if b.score > threshold
+                        and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]]
+                # one run id per (snippet, run): support counts runs, as with mirror runs
+                fusion.add(kept, n * 2 * len(kinds) + j)
+        fused.append((fusion, truth, up))
+    return fused
+
+
+def pairs(fused: list, support: int, sweep) -> list:
+    """(boxes, truth, up) per scene at ``support``, the floor found near the kept boxes."""
+    from parq_runtime import floor
+
+    out = []
+    for n, (fusion, truth, up) in enumerate(fused):
+        fusion.min_support = support
+        fusion.floor_height = None
+        if fusion.floor_classes:
+            fusion.floor_height = floor.locate(fusion.floor_guess(),
+                                               lambda guess: sweep(n, guess))[0]
+        out.append((fusion.boxes, truth, up))
+    return out
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--model", type=pathlib.Path, default=common.ROOT / "models" / "parq-demo")
+    p.add_argument("--val", type=pathlib.Path, nargs="+", required=True,
+                   help="validation folders of scenes (data/val data/val2)")
+    p.add_argument("--crops", type=float, nargs="*", default=[0.85, 0.7],
+                   help="centre-crop fractions to try as extra runs")
+    p.add_argument("--out", type=pathlib.Path, default=common.HERE / "results" / "extra_runs")
+    args = p.parse_args()
+
+    from parq_runtime import Detector
+    from parq_runtime.errors import ParqError
+
+    try:
+        detector = Detector(args.model)
+        folders = tune.validation_folders(args.val, None)
+    except ParqError as e:
+        sys.exit(f"extra_runs: {e}")
+    card = detector.card
+    iters, queries = card.run_setting()
+    start = time.perf_counter()
+    records, seconds = collect(detector, folders, tuple(args.crops), queries)
+    print(f"collected {len(folders)} scenes in {(time.perf_counter() - start) / 60:.1f} min",
+          flush=True)
+    sweep = tune.floor_sweep(folders)
+    base_support = card.min_support
+    sets = {f"{iters} iterations (the card)": [iters], "4 iterations": [4],
+            "iterations 2 + 4": [2, 4], "iterations 2 + 3 + 4": [2, 3, 4],
+            "iterations 1 + 2 + 3 + 4": [1, 2, 3, 4]}
+    for c in args.crops:
+        sets[f"crop {c}"] = [("crop", c)]
+        sets[f"{iters} iterations + crop {c}"] = [iters, ("crop", c)]
+    rows, counts = [], []
+    baseline = spread.counts_of(pairs(fuse(records, [iters], card, card.score_threshold),
+                                      base_support, sweep), detector.classes)
+    for name, kinds in sets.items():
+        runs = 2 * len(kinds)
+        supports = range(runs, 2 * runs + 1)   # the card's: 4 of its 2 runs
+        best = None
+        for threshold in THRESHOLDS:
+            fused = fuse(records, kinds, card, threshold)
+            for support in supports:
+                c = spread.counts_of(pairs(fused, support, sweep), detector.classes)
+                f = spread.f1(c.sum(axis=0))
+                if best is None or (f.sum(), f[1]) > (best[0].sum(), best[0][1]):
+                    best = (f, threshold, support, c)
+        rows.append({"runs": name, "runs_per_snippet": runs, "score_threshold": best[1],
+                     "min_support": best[2]})
+        counts.append(best[3])
+        print(name, rows[-1], np.round(best[0], 3), flush=True)
+    stats = spread.spread([baseline] + counts, 10000, 40)
+    lines = [f"Extra runs per snippet, {args.model.name}, on {len(folders)} validation scenes "
+             f"({', '.join(map(str, args.val))}); {queries} queries; machine: "
+             f"{common.machine()['cpu']}, {common.machine()['cores']} cores.", "",
+             "Each row: its best score threshold and support (of thresholds "
+             f"{THRESHOLDS}, supports from its runs to twice them), chosen on these same "
+             "scenes, so the rows are upper bounds; paired against the card's own "
+             "post-processing at "
+             f"{iters} iterations (first row; support {base_support}).", "",
+             "| runs of each snippet (each plain + mirrored) | runs | threshold | support "
+             "| F1@0.25 (90%) | vs card | F1@0.5 (90%) | vs card |",
+             "|---|---:|---:|---:|---|---|---|---|",
+             f"| the card: {iters} iterations | 2 | {card.score_threshold} | {base_support} | "
+             + " | ".join(spread.paired_cells(stats[0])) + " |"]
+    for row, st in zip(rows, stats[1:]):
+        lines.append(f"| {row['runs']} | {row['runs_per_snippet']} | {row['score_threshold']} "
+                     f"| {row['min_support']} | " + " | ".join(spread.paired_cells(st)) + " |")
+    lines += ["", "Median seconds of a snippet's two runs (plain + mirrored), this machine: "
+              + "; ".join(f"{k} {v:.3f} s" for k, v in seconds.items()) + "."]
+    common.write_report(args.out, lines, {"scenes": len(folders), "rows": rows,
+                                          "stats": stats, "seconds": seconds})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
