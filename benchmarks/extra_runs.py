@@ -1,6 +1,6 @@
 """More runs of each snippet for the scene fusion to vote on: the earlier iterations of a longer
-run, and zoomed centre crops.  Chosen and scored on validation scenes only (nothing here was
-kept, so the held-out scenes were not spent on it).
+run, zoomed centre crops, and another view as the local frame.  Chosen and scored on
+validation scenes only (nothing here was kept, so the held-out scenes were not spent on it).
 
 Mirror runs (parq_runtime.mirror) added a second, different look at every snippet and gained
 +0.015 / +0.047; the demo's gap to F1@0.25 0.6 is in reach (docs/demo-experiments.md), so this
@@ -12,7 +12,11 @@ snippet plain and mirrored, keeping every box (threshold 0, no region):
 * ``crop C``: a 2-iteration run each way on each view's centre crop of C of its width and
   height (intrinsics shifted with it, resized to the network size as any frame is): a narrower
   camera, 1/C the pixels on what it keeps.  Training drew focal lengths within +-10%; a crop
-  of 0.85 is 1.18x.
+  of 0.85 is 1.18x;
+* ``reference R``: a 2-iteration run each way with the views reordered so that view R, not
+  the middle one, is the snippet's local frame (the view order matters only there): the
+  learned queries then start from other places in the room, and the boxes' depth is along
+  another camera's rays.
 
 Then sets of these runs are fused as parq-run fuses the card's two (ray fusion, the card's
 ratio, region, scene NMS and floor prior, the floor found in the images), support counting
@@ -56,10 +60,35 @@ def centre_crop(images: list, K: np.ndarray, fraction: float) -> tuple:
     return out, K
 
 
-def collect(detector, folders: list, crops: tuple, queries: int) -> tuple:
+def reference_order(views: int, reference: int) -> list:
+    """The views' order that makes view ``reference`` the snippet's local frame (the view at
+    geometry.local_view, the middle one), the others kept in their order."""
+    from parq_runtime import geometry
+
+    others = [i for i in range(views) if i != reference]
+    middle = geometry.local_view(views)
+    return others[:middle] + [reference] + others[middle:]
+
+
+def looks(crops: tuple, references: tuple) -> list:
+    """(kind, iterations, views -> views) of each run of a snippet that collect() makes; kind
+    None is the ITERATIONS run whose every iteration is kept."""
+    out = [(None, ITERATIONS, lambda images, K, T: (images, K, T))]
+    for c in crops:
+        out.append((("crop", c), CROP_ITERATIONS,
+                    lambda images, K, T, c=c: (*centre_crop(images, K, c), T)))
+    for r in references:
+        def reorder(images, K, T, r=r):
+            order = reference_order(len(images), r)
+            return [images[i] for i in order], K[order], T[order]
+        out.append((("reference", r), CROP_ITERATIONS, reorder))
+    return out
+
+
+def collect(detector, folders: list, crops: tuple, references: tuple, queries: int) -> tuple:
     """(records, seconds): per scene (snippets, truth, up), a snippet a dict {(kind, mirrored):
-    [(box, its local center)]} with kind an iteration number or ("crop", C); seconds: per
-    kind of run, the median time of a snippet's two runs (plain and mirrored)."""
+    [(box, its local center)]} with kind an iteration number, ("crop", C) or ("reference", R);
+    seconds: per kind of run, the median time of a snippet's two runs (plain and mirrored)."""
     from parq_runtime import boxes as box_decoding
     from parq_runtime import evaluation, geometry, mirror, readers, scene
 
@@ -75,14 +104,11 @@ def collect(detector, folders: list, crops: tuple, queries: int) -> tuple:
             K = np.stack([f.intrinsics for f in frames])
             T_world_camera = np.stack([f.cam_to_world for f in frames])
             runs = {}
-            looks = [(None, ITERATIONS)] + [(c, CROP_ITERATIONS) for c in crops]
-            for crop, iters in looks:
-                views = (images, K) if crop is None else centre_crop(images, K, crop)
+            for kind, iters, views_of in looks(crops, references):
+                views = views_of(images, K, T_world_camera)
                 start = time.perf_counter()
                 for mirrored in (False, True):
-                    inputs = (*views, T_world_camera)
-                    if mirrored:
-                        inputs = mirror.mirror_snippet(*inputs, capture.up)
+                    inputs = mirror.mirror_snippet(*views, capture.up) if mirrored else views
                     found = detector.detect(*inputs, iters=iters, queries=queries,
                                             score_threshold=0.0, region=False, up=capture.up)
                     T_local_world = geometry.invert(found.T_world_local)
@@ -96,12 +122,12 @@ def collect(detector, folders: list, crops: tuple, queries: int) -> tuple:
                         decoded.append([(mirror.unmirror_box(b, capture.up) if mirrored else b,
                                          geometry.transform(T_local_world, b.center))
                                         for b in boxes])
-                    if crop is None:
+                    if kind is None:
                         for k, boxes in enumerate(decoded):
                             runs[k + 1, mirrored] = boxes
                     else:
-                        runs[("crop", crop), mirrored] = decoded[-1]
-                key = f"{iters} iterations" + ("" if crop is None else f", crop {crop}")
+                        runs[kind, mirrored] = decoded[-1]
+                key = f"{iters} iterations" + ("" if kind is None else f", {kind[0]} {kind[1]}")
                 seconds.setdefault(key, []).append(time.perf_counter() - start)
             runs_of_scene.append(runs)
         truth, up = evaluation.load_ground_truth(folder / "boxes.json")
@@ -153,6 +179,9 @@ def main() -> int:
                    help="validation folders of scenes (data/val data/val2)")
     p.add_argument("--crops", type=float, nargs="*", default=[0.85, 0.7],
                    help="centre-crop fractions to try as extra runs")
+    p.add_argument("--references", type=int, nargs="*", default=[0, 2],
+                   help="views to try as the snippet's local frame in extra runs (the card's "
+                        "is the middle one)")
     p.add_argument("--out", type=pathlib.Path, default=common.HERE / "results" / "extra_runs")
     args = p.parse_args()
 
@@ -167,7 +196,8 @@ def main() -> int:
     card = detector.card
     iters, queries = card.run_setting()
     start = time.perf_counter()
-    records, seconds = collect(detector, folders, tuple(args.crops), queries)
+    records, seconds = collect(detector, folders, tuple(args.crops),
+                               tuple(args.references), queries)
     print(f"collected {len(folders)} scenes in {(time.perf_counter() - start) / 60:.1f} min",
           flush=True)
     sweep = tune.floor_sweep(folders)
@@ -178,6 +208,11 @@ def main() -> int:
     for c in args.crops:
         sets[f"crop {c}"] = [("crop", c)]
         sets[f"{iters} iterations + crop {c}"] = [iters, ("crop", c)]
+    for r in args.references:
+        sets[f"reference view {r}"] = [("reference", r)]
+    if args.references:
+        sets[f"{iters} iterations + reference views {args.references}"] = [iters] + [
+            ("reference", r) for r in args.references]
     rows, counts = [], []
     baseline = spread.counts_of(pairs(fuse(records, [iters], card, card.score_threshold),
                                       base_support, sweep), detector.classes)
