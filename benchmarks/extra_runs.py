@@ -9,14 +9,14 @@ snippet plain and mirrored, keeping every box (threshold 0, no region):
 
 * ``iterations``: one 4-iteration run each way, its boxes decoded after every iteration (the
   boxes of iteration k are those of a k-iteration run: the loop does not look ahead);
-* ``crop C``: a 2-iteration run each way on each view's centre crop of C of its width and
-  height (intrinsics shifted with it, resized to the network size as any frame is): a narrower
-  camera, 1/C the pixels on what it keeps.  Training drew focal lengths within +-10%; a crop
-  of 0.85 is 1.18x;
-* ``reference R``: a 2-iteration run each way with the views reordered so that view R, not
-  the middle one, is the snippet's local frame (the view order matters only there): the
-  learned queries then start from other places in the room, and the boxes' depth is along
-  another camera's rays.
+* ``crop C``: a run each way at the card's iterations on each view's centre crop of C of its
+  width and height (intrinsics shifted with it, resized to the network size as any frame is):
+  a narrower camera, 1/C the pixels on what it keeps.  Training drew focal lengths within
+  +-10%; a crop of 0.85 is 1.18x;
+* ``reference R``: a run each way at the card's iterations with the views reordered so that
+  view R, not the middle one, is the snippet's local frame (the view order matters only
+  there): the learned queries then start from other places in the room, and the boxes' depth
+  is along another camera's rays.
 
 Then sets of these runs are fused as parq-run fuses the card's two (ray fusion, the card's
 ratio, region, scene NMS and floor prior, the floor found in the images), support counting
@@ -41,8 +41,7 @@ import spread
 from parq_train import tune
 
 THRESHOLDS = (0.75, 0.8, 0.85)
-ITERATIONS = 4
-CROP_ITERATIONS = 2
+ITERATIONS = 4     # the run whose every iteration is kept; the other runs use the card's
 
 
 def centre_crop(images: list, K: np.ndarray, fraction: float) -> tuple:
@@ -70,22 +69,23 @@ def reference_order(views: int, reference: int) -> list:
     return others[:middle] + [reference] + others[middle:]
 
 
-def looks(crops: tuple, references: tuple) -> list:
+def looks(crops: tuple, references: tuple, iters: int) -> list:
     """(kind, iterations, views -> views) of each run of a snippet that collect() makes; kind
-    None is the ITERATIONS run whose every iteration is kept."""
+    None is the ITERATIONS run whose every iteration is kept, the others run ``iters``."""
     out = [(None, ITERATIONS, lambda images, K, T: (images, K, T))]
     for c in crops:
-        out.append((("crop", c), CROP_ITERATIONS,
+        out.append((("crop", c), iters,
                     lambda images, K, T, c=c: (*centre_crop(images, K, c), T)))
     for r in references:
         def reorder(images, K, T, r=r):
             order = reference_order(len(images), r)
             return [images[i] for i in order], K[order], T[order]
-        out.append((("reference", r), CROP_ITERATIONS, reorder))
+        out.append((("reference", r), iters, reorder))
     return out
 
 
-def collect(detector, folders: list, crops: tuple, references: tuple, queries: int) -> tuple:
+def collect(detector, folders: list, crops: tuple, references: tuple, iters: int,
+            queries: int) -> tuple:
     """(records, seconds): per scene (snippets, truth, up), a snippet a dict {(kind, mirrored):
     [(box, its local center)]} with kind an iteration number, ("crop", C) or ("reference", R);
     seconds: per kind of run, the median time of a snippet's two runs (plain and mirrored)."""
@@ -104,16 +104,16 @@ def collect(detector, folders: list, crops: tuple, references: tuple, queries: i
             K = np.stack([f.intrinsics for f in frames])
             T_world_camera = np.stack([f.cam_to_world for f in frames])
             runs = {}
-            for kind, iters, views_of in looks(crops, references):
+            for kind, run_iters, views_of in looks(crops, references, iters):
                 views = views_of(images, K, T_world_camera)
                 start = time.perf_counter()
                 for mirrored in (False, True):
                     inputs = mirror.mirror_snippet(*views, capture.up) if mirrored else views
-                    found = detector.detect(*inputs, iters=iters, queries=queries,
+                    found = detector.detect(*inputs, iters=run_iters, queries=queries,
                                             score_threshold=0.0, region=False, up=capture.up)
                     T_local_world = geometry.invert(found.T_world_local)
-                    decoded = []
-                    for it in found.iterations:
+                    decoded = []   # every iteration's boxes for kind None, else the last's
+                    for it in found.iterations if kind is None else found.iterations[-1:]:
                         boxes = box_decoding.detections(it, found.T_world_local,
                                                         detector.classes, 0.0,
                                                         detector.card.nms_iou, None, capture.up)
@@ -127,7 +127,8 @@ def collect(detector, folders: list, crops: tuple, references: tuple, queries: i
                             runs[k + 1, mirrored] = boxes
                     else:
                         runs[kind, mirrored] = decoded[-1]
-                key = f"{iters} iterations" + ("" if kind is None else f", {kind[0]} {kind[1]}")
+                key = f"{run_iters} iterations" + (
+                    "" if kind is None else f", {kind[0]} {kind[1]}")
                 seconds.setdefault(key, []).append(time.perf_counter() - start)
             runs_of_scene.append(runs)
         truth, up = evaluation.load_ground_truth(folder / "boxes.json")
@@ -197,7 +198,7 @@ def main() -> int:
     iters, queries = card.run_setting()
     start = time.perf_counter()
     records, seconds = collect(detector, folders, tuple(args.crops),
-                               tuple(args.references), queries)
+                               tuple(args.references), iters, queries)
     print(f"collected {len(folders)} scenes in {(time.perf_counter() - start) / 60:.1f} min",
           flush=True)
     sweep = tune.floor_sweep(folders)
@@ -232,9 +233,10 @@ def main() -> int:
         counts.append(best[3])
         print(name, rows[-1], np.round(best[0], 3), flush=True)
     stats = spread.spread([baseline] + counts, 10000, 40)
+    machine = common.machine()
     lines = [f"Extra runs per snippet, {args.model.name}, on {len(folders)} validation scenes "
              f"({', '.join(map(str, args.val))}); {queries} queries; machine: "
-             f"{common.machine()['cpu']}, {common.machine()['cores']} cores.", "",
+             f"{machine['cpu']}, {machine['cores']} cores.", "",
              "Each row: its best score threshold and support (of thresholds "
              f"{THRESHOLDS}, supports from its runs to twice them), chosen on these same "
              "scenes, so the rows are upper bounds; paired against the card's own "
