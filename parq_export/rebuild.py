@@ -208,14 +208,14 @@ def rebuild(folder, opset: int = DEFAULT_OPSET, log=print) -> PARQ:
             value = np.where(scaled, value * np.sqrt(1.0 + EPS), value)
             for e in np.unique(entry[ks]):
                 rows = entry[ks] == e
-                target = flat[names[e]]
-                before = target[position[ks[rows]]]
+                dest = flat[names[e]]
+                before = dest[position[ks[rows]]]
                 known = ~np.isnan(before)
                 if not np.allclose(before[known], value[rows][known], rtol=1e-5, atol=1e-7):
                     raise ParqError(f"{path}: constant {cname} disagrees with another "
                                     f"export of {names[e]}")
-                target[position[ks[rows]]] = value[rows]
-    fill_unexported(flat, config, card)
+                dest[position[ks[rows]]] = value[rows]
+    fill_unexported(flat, config)
     missing = [name for name, v in flat.items() if np.isnan(v).any()]
     if missing:
         raise ParqError(f"{folder}: the graphs do not hold {', '.join(missing[:4])}"
@@ -239,7 +239,7 @@ def rebuild(folder, opset: int = DEFAULT_OPSET, log=print) -> PARQ:
     return model
 
 
-def fill_unexported(flat: dict, config: PARQConfig, card) -> None:
+def fill_unexported(flat: dict, config: PARQConfig) -> None:
     """The parameter elements no graph holds: the cross-attention's key bias, which the
     exporter drops (softmax removes a per-query constant), is 0."""
     name = "layer.decoder.multihead_attn.in_proj_bias"
