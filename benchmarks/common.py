@@ -97,6 +97,27 @@ def golden_snippet(size=(1296, 968)):
     return images, K, expected["cam_to_world"]
 
 
+def validation_arguments(parser) -> None:
+    """--model (default the demo) and --val (validation folders, required): the options of
+    the scripts that choose and score on validation scenes only."""
+    parser.add_argument("--model", type=pathlib.Path, default=ROOT / "models" / "parq-demo")
+    parser.add_argument("--val", type=pathlib.Path, nargs="+", required=True,
+                        help="validation folders of scenes (data/val data/val2)")
+
+
+def open_validation(args, prog: str) -> tuple:
+    """(Detector of args.model, the scene folders of args.val); a bad folder exits with one
+    line naming ``prog``."""
+    from parq_runtime import Detector
+    from parq_runtime.errors import ParqError
+    from parq_train import tune
+
+    try:
+        return Detector(args.model), tune.validation_folders(args.val, None)
+    except ParqError as e:
+        sys.exit(f"{prog}: {e}")
+
+
 def write_report(out: pathlib.Path, lines: list, record) -> None:
     """Print the markdown ``lines`` and write them to ``out``.md, ``record`` to ``out``.json
     (folders made as needed)."""

@@ -175,9 +175,7 @@ def pairs(fused: list, support: int, sweep) -> list:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--model", type=pathlib.Path, default=common.ROOT / "models" / "parq-demo")
-    p.add_argument("--val", type=pathlib.Path, nargs="+", required=True,
-                   help="validation folders of scenes (data/val data/val2)")
+    common.validation_arguments(p)
     p.add_argument("--crops", type=float, nargs="*", default=[0.85, 0.7],
                    help="centre-crop fractions to try as extra runs")
     p.add_argument("--references", type=int, nargs="*", default=[0, 2],
@@ -186,14 +184,7 @@ def main() -> int:
     p.add_argument("--out", type=pathlib.Path, default=common.HERE / "results" / "extra_runs")
     args = p.parse_args()
 
-    from parq_runtime import Detector
-    from parq_runtime.errors import ParqError
-
-    try:
-        detector = Detector(args.model)
-        folders = tune.validation_folders(args.val, None)
-    except ParqError as e:
-        sys.exit(f"extra_runs: {e}")
+    detector, folders = common.open_validation(args, "extra_runs")
     card = detector.card
     iters, queries = card.run_setting()
     start = time.perf_counter()

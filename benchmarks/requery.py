@@ -38,7 +38,6 @@ from scipy.stats import rankdata
 
 import common
 import spread
-from parq_train import tune
 
 VARIANTS = (("alone", 1), ("alone", 2), ("with", 1), ("with", 2))
 MEANS = tuple(np.round(np.arange(0.1, 0.95, 0.05), 2))
@@ -50,15 +49,9 @@ def visible(points_local, camera, T_camera_local, feature_size) -> np.ndarray:
     front of its camera (camera (N, 4) pinholes at feature resolution)."""
     from parq_runtime import geometry
 
-    seen = np.zeros(len(points_local), dtype=bool)
-    for pinhole, T in zip(camera, T_camera_local):
-        p = geometry.transform(T, points_local)
-        z = np.where(p[:, 2] > 0.1, p[:, 2], np.inf)
-        u = pinhole[0] * p[:, 0] / z + pinhole[2]
-        v = pinhole[1] * p[:, 1] / z + pinhole[3]
-        seen |= np.isfinite(z) & (u >= 0) & (u <= feature_size[0] - 1) \
-            & (v >= 0) & (v <= feature_size[1] - 1)
-    return seen
+    points_camera = np.stack([geometry.transform(T, points_local) for T in T_camera_local])
+    _, valid = geometry.project(points_camera, camera[:, None, :], feature_size, eps=0.1)
+    return valid.any(0)
 
 
 def requery(detector, images, K, T_world_camera, centers_world, up, learned) -> tuple:
@@ -180,20 +173,11 @@ def centre_errors(records: list) -> dict:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--model", type=pathlib.Path, default=common.ROOT / "models" / "parq-demo")
-    p.add_argument("--val", type=pathlib.Path, nargs="+", required=True,
-                   help="validation folders of scenes (data/val data/val2)")
+    common.validation_arguments(p)
     p.add_argument("--out", type=pathlib.Path, default=common.HERE / "results" / "requery")
     args = p.parse_args()
 
-    from parq_runtime import Detector
-    from parq_runtime.errors import ParqError
-
-    try:
-        detector = Detector(args.model)
-        folders = tune.validation_folders(args.val, None)
-    except ParqError as e:
-        sys.exit(f"requery: {e}")
+    detector, folders = common.open_validation(args, "requery")
     start = time.perf_counter()
     records = collect(detector, folders)
     minutes = (time.perf_counter() - start) / 60
