@@ -75,13 +75,13 @@ def constants(proto: onnx.ModelProto) -> dict:
     return out
 
 
-def correspondence(mine: onnx.ModelProto, theirs: onnx.ModelProto) -> dict:
+def correspondence(mine: onnx.ModelProto, theirs: onnx.ModelProto, my_constants: dict,
+                   their_constants: dict) -> dict:
     """{constant of ``mine``: the constant of ``theirs`` that the same input of the same node
-    reads}, in every graph scope whose nodes are the same ops in the same order (the same
+    reads} (the constants being each graph's :func:`constants`), in every graph scope whose nodes are the same ops in the same order (the same
     exporter).  Names alone do not do: an export merges equal constants (a fresh model's batch
     norms are all alike), and the probe's, all distinct, are not merged."""
-    def scopes(proto):
-        names = constants(proto)
+    def scopes(proto, names):
         out = {}
 
         def walk(graph, prefix):
@@ -99,7 +99,7 @@ def correspondence(mine: onnx.ModelProto, theirs: onnx.ModelProto) -> dict:
             out[prefix] = (ops, reads)
         walk(proto.graph, "")
         return out
-    ours, other = scopes(mine), scopes(theirs)
+    ours, other = scopes(mine, my_constants), scopes(theirs, their_constants)
     pairs = {}
     for prefix, (ops, reads) in ours.items():
         if prefix in other and other[prefix][0] == ops:
@@ -184,9 +184,9 @@ def rebuild(folder, opset: int = DEFAULT_OPSET, log=print) -> PARQ:
     for role, proto in export_graphs(probe, opset).items():
         path = folder / card.raw["graphs"][role]["file"]
         target = onnx.load(str(path))
-        theirs = constants(target)
-        same = correspondence(proto, target)
-        for cname, mine in constants(proto).items():
+        ours, theirs = constants(proto), constants(target)
+        same = correspondence(proto, target, ours, theirs)
+        for cname, mine in ours.items():
             if mine.dtype != np.float32 or mine.size == 0:
                 continue
             ks, scaled = locate(mine, total)
