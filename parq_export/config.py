@@ -73,6 +73,8 @@ class PARQConfig:
     # classes pulled to stand on the floor found in the images (parq_runtime.floor); (): none
     floor_classes: tuple = ()
     floor_weight: float = scene_fusion.FLOOR_WEIGHT
+    # which class a scene box reports: "best" (the authors') or "vote" (parq_runtime.fusion)
+    labels: str = scene_fusion.AUTHORS_LABELS
     # learned queries, most useful first (parq_train.tune): a run with fewer queries starts
     # from the first ones; () = farthest-point sampling (parq_runtime.queries)
     query_order: tuple = ()
@@ -111,7 +113,7 @@ class PARQConfig:
                             "multiples of 4, at least 32")
         problems += scene_fusion.problems(self.fusion, self.min_support, self.ray_ratio,
                                           self.scene_nms, tuple(self.floor_classes),
-                                          self.floor_weight, self.classes)
+                                          self.floor_weight, self.classes, self.labels)
         if self.query_order and sorted(self.query_order) != list(range(self.num_queries)):
             problems.append(f"query_order must be a permutation of the {self.num_queries} "
                             "learned queries")

@@ -15,7 +15,7 @@ DEFAULT_MODEL = pathlib.Path(__file__).resolve().parents[1] / "models" / "parq-d
 
 
 def parser() -> argparse.ArgumentParser:
-    from .fusion import MODES
+    from .fusion import LABEL_RULES, MODES
     from .gravity import CHOICES
     from .readers import FORMATS
 
@@ -65,6 +65,10 @@ def parser() -> argparse.ArgumentParser:
                         "score-weighted mean center and size, ray = as mean but each center "
                         "trusted less along its viewing ray than across it (default: the "
                         "model card's)")
+    p.add_argument("--labels", choices=LABEL_RULES, default=None,
+                   help="class of a scene box: best = its best-scoring detection's (the "
+                        "authors' protocol), vote = the class whose detections' scores sum "
+                        "highest over its snippets (default: the model card's)")
     p.add_argument("--ray-ratio", type=ray_ratio, default=None,
                    help="for --fusion ray: how many times less a detection's depth along its "
                         "viewing ray is trusted than its position across it (>= 1; 1 is "
@@ -175,7 +179,7 @@ def run(args) -> int:
         keyframe_angle=args.keyframe_angle, keyframe_distance=args.keyframe_distance,
         max_snippets=args.max_snippets, fusion=args.fusion, min_support=args.min_support,
         ray_ratio=args.ray_ratio, scene_nms=args.scene_nms, mirror=args.mirror,
-        floor=args.floor)
+        floor=args.floor, labels=args.labels)
     settings = scene.resolved(settings, detector.card)      # the card's iters / queries
     detector.reference_points(settings.queries)  # argument check before the long part
     keys, snippets = scene.plan(capture, settings, detector.card)

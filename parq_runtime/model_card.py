@@ -123,6 +123,12 @@ class ModelCard:
         return tuple(self.raw["postprocess"].get("floor_classes", ()))
 
     @property
+    def labels(self) -> str:
+        """Which class a scene box reports: ``best`` (its best detection's) or ``vote``
+        (parq_runtime.fusion; cards before it: the authors' ``best``)."""
+        return str(self.raw["postprocess"].get("labels", fusion.AUTHORS_LABELS))
+
+    @property
     def floor_weight(self) -> float:
         return float(self.raw["postprocess"].get("floor_weight", fusion.FLOOR_WEIGHT))
 
@@ -238,7 +244,8 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
                             post.get("min_support", fusion.AUTHORS_MIN_SUPPORT),
                             post.get("ray_ratio", fusion.RAY_RATIO), post.get("scene_nms"),
                             post.get("floor_classes", ()),
-                            post.get("floor_weight", fusion.FLOOR_WEIGHT), card.classes)
+                            post.get("floor_weight", fusion.FLOOR_WEIGHT), card.classes,
+                            post.get("labels", fusion.AUTHORS_LABELS))
     if found:
         raise ParqError(f"{path}: postprocess: {'; '.join(found)}")
     snippets = raw.get("snippets", {})

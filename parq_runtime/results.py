@@ -4,7 +4,7 @@
       "schema": "parq-onnx/detections", "version": 1,
       "model":    {"folder", "checkpoint_sha256", "package_version"},
       "settings": {"iters", "queries", "views", "stride", "gap", "score_threshold", "region",
-                   "fusion", "min_support", "ray_ratio", "scene_nms", "mirror", "form",
+                   "fusion", "labels", "min_support", "ray_ratio", "scene_nms", "mirror", "form",
                    "keyframe_angle_deg", "keyframe_distance_m", "floor_classes"},
       "capture":  {"path", "format", "up", "frames", "keyframes", "notes", "floor": null or
                    {"height" m along up, "source": "given" | "images", "candidates": [m]}},
@@ -54,7 +54,8 @@ def to_json(scene, settings, card, score_threshold: float) -> dict:
                      "views": settings.views, "stride": settings.stride or settings.views,
                      "gap": scene.gap,
                      "score_threshold": score_threshold, "region": settings.region,
-                     "fusion": scene.fusion.mode, "min_support": scene.fusion.min_support,
+                     "fusion": scene.fusion.mode, "labels": scene.fusion.labels,
+                     "min_support": scene.fusion.min_support,
                      "ray_ratio": scene.fusion.ray_ratio,
                      "scene_nms": scene.fusion.scene_nms, "mirror": scene.mirror,
                      "form": settings.form, "keyframe_angle_deg": settings.keyframe_angle,

@@ -37,6 +37,8 @@ class RunSettings:
     floor: float | str | None = None      # the floor's height along up (metres), FLOOR_OFF,
                                           # or None: found in the images when the card has
                                           # floor classes (parq_runtime.floor)
+    labels: str | None = None             # which class a scene box reports (best, vote);
+                                          # None: the model card's
 
 
 def scene_nms(settings: RunSettings, card) -> float | None:
@@ -127,7 +129,8 @@ def run(detector, capture: Capture, settings: RunSettings, progress=None) -> Sce
                              ray_ratio=settings.ray_ratio or detector.card.ray_ratio,
                              scene_nms=scene_nms(settings, detector.card),
                              floor_classes=floor_classes(settings, detector.card),
-                             floor_weight=detector.card.floor_weight))
+                             floor_weight=detector.card.floor_weight,
+                             labels=settings.labels or detector.card.labels))
     # Overlapping windows share frames: their image features are computed once (streaming).
     # An LRU cache of span + gap - 1 frames never encodes one twice (simulated for 1-9 views,
     # gaps 1-6 and every stride below the span; tests/test_export.py runs five cases); with

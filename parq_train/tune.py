@@ -30,7 +30,7 @@ one of SCENE_NMS, by the same criterion, off winning ties.  It comes after the g
 so that it does not multiply the grid's time; it only removes boxes that the chosen candidate
 keeps.
 
-Last, the floor prior (parq_runtime.fusion, parq_runtime.floor: boxes of floor-standing classes
+Then the floor prior (parq_runtime.fusion, parq_runtime.floor: boxes of floor-standing classes
 pulled to stand on the floor found in the images) is chosen for that: off, or a set of classes
 and a weight (FLOOR_WEIGHTS).  The set starts from the classes that stand on their scene's
 floor in the validation ground truth (at least STANDING_SHARE of their boxes have their
@@ -38,7 +38,11 @@ bottom within STANDING_TOLERANCE of the lowest box bottom), and classes are then
 at a time while that raises the criterion (backward elimination); off wins ties.  Each scene's
 floor is found as parq-run finds it, from its frames near the fused boxes' guess.
 
-Before that, a checkpoint's learned queries are ranked (``query_order``, see
+Last, the label rule (parq_runtime.fusion ``labels``: a scene box reports its best detection's
+class, or the class its detections vote for) is chosen for all of that, the authors' rule
+winning ties.
+
+Before all of this, a checkpoint's learned queries are ranked (``query_order``, see
 parq_runtime.queries; a model folder keeps its own ranking): one pass with all of them, each
 query scored by the snippet detections it makes above score 0.7, +1 for each that overlaps a
 ground-truth box of its class at IoU 0.25 and -0.5 for each that does not.  Runs with fewer
@@ -69,8 +73,8 @@ import numpy as np
 from parq_runtime import evaluation, floor, geometry, readers, scene
 from parq_runtime.arguments import OneLineParser, positive_int
 from parq_runtime.errors import ParqError
-from parq_runtime.fusion import (AUTHORS_MIN_SUPPORT, AUTHORS_MODE, FLOOR_WEIGHT, RAY_RATIO,
-                                 SceneFusion)
+from parq_runtime.fusion import (AUTHORS_LABELS, AUTHORS_MIN_SUPPORT, AUTHORS_MODE,
+                                 FLOOR_WEIGHT, LABEL_RULES, RAY_RATIO, SceneFusion)
 from parq_runtime.iou import iou_matrix
 
 THRESHOLDS = tuple(np.round(np.arange(0.3, 0.951, 0.05), 2))
@@ -90,9 +94,9 @@ MIRROR_FUSIONS = ((AUTHORS_MODE, AUTHORS_MIN_SUPPORT, RAY_RATIO),) + tuple(
     if (mode, support) != (AUTHORS_MODE, AUTHORS_MIN_SUPPORT))
 RANKING_SCORE, RANKING_IOU, FALSE_WEIGHT = 0.7, 0.25, 0.5  # how query_utility counts
 AUTHORS = {"score_threshold": 0.8, "eval_region": list(REGIONS[0]), "fusion": FUSIONS[0][0],
-           "min_support": FUSIONS[0][1], "scene_nms": None}
+           "min_support": FUSIONS[0][1], "scene_nms": None, "labels": AUTHORS_LABELS}
 CHOSEN = ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio", "scene_nms",
-          "floor_classes", "floor_weight")
+          "floor_classes", "floor_weight", "labels")
 SCENE_NMS = (None, 0.0, 0.05, 0.1, 0.2, 0.3)   # None: off, the authors' protocol
 FLOOR_WEIGHTS = (FLOOR_WEIGHT, 10.0)           # the first is the runtime's default
 STANDING_SHARE, STANDING_TOLERANCE = 0.9, 0.02  # a floor class: 90% of its boxes within 2 cm
@@ -166,7 +170,7 @@ def score_supports(records: list, threshold: float, region, classes, fusion: str
 
 def fuse_records(records: list, threshold: float, region, fusion: str,
                  ray_ratio: float = RAY_RATIO, mirror: bool = False,
-                 scene_nms: float | None = None) -> list:
+                 scene_nms: float | None = None, labels: str = AUTHORS_LABELS) -> list:
     """Per scene of ``records`` (run_once's): (its SceneFusion, support 1, of the snippet boxes
     scoring above ``threshold`` whose local centers lie in ``region``, truth, up); with
     ``mirror`` each snippet's mirror-image run is fused as parq-run --mirror fuses it."""
@@ -176,7 +180,8 @@ def fuse_records(records: list, threshold: float, region, fusion: str,
 
     fused = []
     for snippets, truth, up in records:
-        scene_boxes = SceneFusion(up=up, mode=fusion, ray_ratio=ray_ratio, scene_nms=scene_nms)
+        scene_boxes = SceneFusion(up=up, mode=fusion, ray_ratio=ray_ratio, scene_nms=scene_nms,
+                                  labels=labels)
         for n, boxes in enumerate(snippets):
             if mirror:
                 scene_boxes.add(kept(boxes[0]), n)
@@ -248,10 +253,11 @@ def candidate(records: list, classes, threshold: float, region, fusion: str, min
 
 def row_of(threshold: float, region, fusion: str, min_support: int, ray_ratio: float,
            metrics: dict, scene_nms: float | None = None, floor_classes=(),
-           floor_weight: float = FLOOR_WEIGHT) -> dict:
+           floor_weight: float = FLOOR_WEIGHT, labels: str = AUTHORS_LABELS) -> dict:
     return {"score_threshold": threshold, "eval_region": list(region), "fusion": fusion,
             "min_support": min_support, "ray_ratio": ray_ratio, "scene_nms": scene_nms,
             "floor_classes": list(floor_classes), "floor_weight": floor_weight,
+            "labels": labels,
             **{f"f1@{k}": round(metrics[k]["f1"], 4) for k in metrics}}
 
 
@@ -291,16 +297,9 @@ def select_floor(records: list, classes, best: dict, sweep, mirror: bool = False
     a floor is chosen from them as parq-run chooses it."""
     fused = fuse_records(records, best["score_threshold"], best["eval_region"], best["fusion"],
                          best["ray_ratio"], mirror, best["scene_nms"])
-    for fusion, _, _ in fused:
-        fusion.min_support = best["min_support"]
 
     def row(floor_classes, weight):
-        pairs = []
-        for n, (fusion, truth, up) in enumerate(fused):
-            fusion.floor_classes, fusion.floor_weight = tuple(floor_classes), weight
-            fusion.floor_height = floor.locate(fusion.floor_guess(),
-                                               lambda guess: sweep(n, guess))[0]
-            pairs.append((fusion.boxes, truth, up))
+        pairs = floor_pairs(fused, best["min_support"], floor_classes, weight, sweep)
         return row_of(best["score_threshold"], best["eval_region"], best["fusion"],
                       best["min_support"], best["ray_ratio"], evaluation.evaluate(pairs, classes),
                       best["scene_nms"], floor_classes, weight)
@@ -320,6 +319,39 @@ def select_floor(records: list, classes, best: dict, sweep, mirror: bool = False
             break
         current, chosen = better, better["floor_classes"]
     return best_of([rows[0], current]), rows
+
+
+def floor_pairs(fused: list, min_support: int, floor_classes, weight: float, sweep) -> list:
+    """(scene boxes, truth, up) per scene of ``fused`` (fuse_records') at ``min_support``,
+    the boxes of ``floor_classes`` pulled at ``weight`` to the floor parq-run would find
+    (``sweep``: as for :func:`select_floor`)."""
+    pairs = []
+    for n, (fusion, truth, up) in enumerate(fused):
+        fusion.min_support = min_support
+        fusion.floor_classes, fusion.floor_weight = tuple(floor_classes), weight
+        fusion.floor_height = floor.locate(fusion.floor_guess(),
+                                           lambda guess: sweep(n, guess))[0] \
+            if floor_classes else None
+        pairs.append((fusion.boxes, truth, up))
+    return pairs
+
+
+def select_labels(records: list, classes, best: dict, sweep, mirror: bool = False) -> tuple:
+    """(``best`` with the label rule chosen, the rows tried): each of LABEL_RULES (the
+    authors' first, which wins ties; parq_runtime.fusion) with everything else ``best``'s,
+    floor prior included."""
+    rows = []
+    for labels in LABEL_RULES:
+        fused = fuse_records(records, best["score_threshold"], best["eval_region"],
+                             best["fusion"], best["ray_ratio"], mirror, best["scene_nms"],
+                             labels)
+        pairs = floor_pairs(fused, best["min_support"], best["floor_classes"],
+                            best["floor_weight"], sweep)
+        rows.append(row_of(best["score_threshold"], best["eval_region"], best["fusion"],
+                           best["min_support"], best["ray_ratio"],
+                           evaluation.evaluate(pairs, classes), best["scene_nms"],
+                           best["floor_classes"], best["floor_weight"], labels))
+    return best_of(rows), rows
 
 
 def best_of(table: list) -> dict:
@@ -375,12 +407,15 @@ def record_of(args, folders, best, table, ranking) -> dict:
 def choose(records: list, classes, args, folders: list) -> tuple:
     """:func:`select` over the grid for the run setting of ``args`` (with or without mirror
     runs), then :func:`select_scene_nms` for its best, then :func:`select_floor` with the
-    floors of the scenes ``folders``; the table ends with the NMS rows, then the floor's."""
+    floors of the scenes ``folders``, then :func:`select_labels`; the table ends with the NMS
+    rows, then the floor's, then the label rules'."""
     best, table = select(records, classes, fusions=MIRROR_FUSIONS if args.mirror else FUSIONS,
                          mirror=args.mirror, jobs=args.jobs)
     best, rows = select_scene_nms(records, classes, best, args.mirror)
-    best, floor_rows = select_floor(records, classes, best, floor_sweep(folders), args.mirror)
-    return best, table + rows + floor_rows
+    sweep = floor_sweep(folders)
+    best, floor_rows = select_floor(records, classes, best, sweep, args.mirror)
+    best, label_rows = select_labels(records, classes, best, sweep, args.mirror)
+    return best, table + rows + floor_rows + label_rows
 
 
 def floor_sweep(folders: list):
@@ -481,7 +516,7 @@ def run_checkpoint(args, folders) -> int:
         score_threshold=best["score_threshold"], eval_region=tuple(best["eval_region"]),
         fusion=best["fusion"], min_support=best["min_support"], ray_ratio=best["ray_ratio"],
         scene_nms=best["scene_nms"], floor_classes=tuple(best["floor_classes"]),
-        floor_weight=best["floor_weight"],
+        floor_weight=best["floor_weight"], labels=best["labels"],
         run_iters=args.iters, run_queries=args.queries, run_mirror=args.mirror, extra=extra,
         query_order=tuple(order))
     metadata = {"tuning_table": table}

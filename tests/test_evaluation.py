@@ -254,6 +254,42 @@ def test_scene_nms_keeps_one_box_per_object_and_class():
             SceneFusion(scene_nms=bad)
 
 
+def test_label_vote_takes_the_class_the_cluster_calls_it_most():
+    """One object, detected by four snippets: three call it a table (0.7, 0.75, 0.8), one a
+    chair (0.95).  ``best`` reports the chair; ``vote`` the table (scores 2.25 against 0.95),
+    as the best table detection (0.8, snippet 3), averaged over the tables only; a tie in the
+    sums goes to the class with the single best score."""
+    from parq_runtime.errors import ParqError
+
+    calls = [("table", 0.7, 0.0), ("chair", 0.95, 0.3), ("table", 0.75, 0.1),
+             ("table", 0.8, 0.2)]
+    fused = {}
+    for labels in ("best", "vote"):
+        fusion = SceneFusion(mode="mean", labels=labels)
+        for n, (name, score, x) in enumerate(calls):
+            fusion.add([box([x, 0, 0.5], name=name, score=score)], n)
+        ((b,), sources, supports) = fusion.boxes, fusion.sources, fusion.supports
+        fused[labels] = (b.class_name, b.score, float(b.center[0]), sources, supports)
+    assert fused["best"] == ("chair", 0.95, 0.3, [1], [4])
+    expected_x = (0.7 * 0.0 + 0.75 * 0.1 + 0.8 * 0.2) / 2.25
+    assert fused["vote"][:2] == ("table", 0.8) and fused["vote"][3:] == ([3], [4])
+    assert fused["vote"][2] == pytest.approx(expected_x)
+    # the authors' mode reports the voted class's best detection as it is
+    fusion = SceneFusion(labels="vote")
+    for n, (name, score, x) in enumerate(calls):
+        fusion.add([box([x, 0, 0.5], name=name, score=score)], n)
+    assert (fusion.boxes[0].class_name, float(fusion.boxes[0].center[0])) == ("table", 0.2)
+    # equal sums (0.5 each, exact in binary): the class with the best single detection
+    tie = SceneFusion(labels="vote")
+    tie.add([box([0, 0, 0.5], name="table", score=0.25)], 0)
+    tie.add([box([0, 0, 0.5], name="chair", score=0.5)], 1)
+    tie.add([box([0, 0, 0.5], name="table", score=0.25)], 2)
+    assert tie.boxes[0].class_name == "chair"
+    for bad in ("majority", None, 1):
+        with pytest.raises(ParqError, match="fusion labels"):
+            SceneFusion(labels=bad)
+
+
 def test_parq_eval_cli(tmp_path):
     gt = {"format": "parq-onnx-boxes", "version": 1, "frame": "world", "up": [0, 0, 1],
           "boxes": [box([0, 0, 0.5]).to_json(), box([2, 0, 0.5]).to_json()]}

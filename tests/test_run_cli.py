@@ -93,6 +93,18 @@ def test_parq_run_end_to_end(tiny_model, tmp_path, authors_names):
     assert mean["scene"]["boxes"] and min(b["support"] for b in mean["scene"]["boxes"]) >= 2
     assert min(b["support"] for b in data["scene"]["boxes"]) >= 1
     assert data["settings"]["scene_nms"] is None                # this card has none
+    assert (data["settings"]["labels"], mean["settings"]["labels"]) == ("best", "best")
+    # the label vote from the command line reaches the fusion (tests/test_evaluation.py
+    # checks what it does)
+    code, stdout, _ = run_cli(folder, "--model", tiny_model, "--iters", 2, "--queries", 16,
+                              "--score-threshold", 0, "--all-regions", "--fusion", "mean",
+                              "--min-support", 2, "--labels", "vote", "-q")
+    assert code == 0
+    vote = json.loads(stdout)
+    assert vote["settings"]["labels"] == "vote" and vote["scene"]["boxes"]
+    assert min(b["support"] for b in vote["scene"]["boxes"]) >= 2
+    _one_line_error(*run_cli(folder, "--model", tiny_model, "--labels", "majority"),
+                    "--labels")
     # scene NMS from the command line: no two scene boxes of one class overlap at all
     code, stdout, _ = run_cli(folder, "--model", tiny_model, "--iters", 2, "--queries", 16,
                               "--score-threshold", 0, "--all-regions", "--fusion", "mean",
@@ -273,6 +285,9 @@ def test_bad_model_folders(tiny_model, scannet_folder, tmp_path):
     card["postprocess"].update(floor_classes=["unicorn"], floor_weight=3.0)
     (old / "model.json").write_text(json.dumps(card))
     _one_line_error(*run_cli(scannet_folder, "--model", old), "model.json", "unicorn")
+    card["postprocess"].update(floor_classes=[], labels="majority")
+    (old / "model.json").write_text(json.dumps(card))
+    _one_line_error(*run_cli(scannet_folder, "--model", old), "model.json", "labels")
 
 
 def test_bad_captures(tiny_model, tmp_path):

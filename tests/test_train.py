@@ -169,6 +169,38 @@ def test_tune_chooses_scene_nms_after_the_grid_and_off_on_ties():
     assert tune.select_scene_nms(alone, ["chair"], best)[0]["scene_nms"] is None
 
 
+def test_tune_chooses_the_label_vote_when_it_scores_and_the_authors_rule_on_ties():
+    """Three snippets see one table: two call it a table (0.85, 0.85), one a chair (0.9).  The
+    best detection's class (the authors' rule) reports a chair, F1 0; the vote (1.7 against
+    0.9) a table, F1 1.  With every snippet agreeing, both rules score alike and the authors'
+    wins the tie; the chosen row keeps the rest of ``best`` as it was."""
+    from parq_runtime.boxes import Box
+    from parq_runtime.geometry import box_corners
+    from parq_train import tune
+
+    def box(name, score):
+        c, s, R = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.8, 0.6]), np.eye(3)
+        label = ["chair", "table"].index(name)
+        return Box(c, s, R, 0.0, label, name, score, box_corners(c, s, R)), c
+
+    truth = [box("table", 1.0)[0]]
+    up = (0.0, 0.0, 1.0)
+    records = [([[box("table", 0.85)], [box("chair", 0.9)], [box("table", 0.85)]], truth, up)]
+    best = tune.row_of(0.5, tune.REGIONS[-1], "mean", 2, 10.0, {}, 0.1)
+
+    def no_floor(n, guess):
+        raise AssertionError("no floor classes: no floor is looked for")
+
+    chosen, rows = tune.select_labels(records, ["chair", "table"], best, no_floor)
+    assert [(r["labels"], r["f1@0.25"]) for r in rows] == [("best", 0.0), ("vote", 1.0)]
+    assert chosen["labels"] == "vote"
+    assert {k: chosen[k] for k in tune.CHOSEN if k != "labels"} == {
+        k: best[k] for k in tune.CHOSEN if k != "labels"}
+    agreeing = [([[box("table", 0.85)], [box("table", 0.9)]], truth, up)]
+    chosen, rows = tune.select_labels(agreeing, ["chair", "table"], best, no_floor)
+    assert rows[0]["f1@0.25"] == rows[1]["f1@0.25"] == 1.0 and chosen["labels"] == "best"
+
+
 def test_tune_with_mirror_runs_counts_both_runs_and_scores_alike_in_any_number_of_jobs():
     """Mirror records: each snippet is (plain, mirrored).  The chair is found by both runs of
     the one snippet, a false box by the plain run only; support 2 (runs) keeps the chair
