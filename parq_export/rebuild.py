@@ -27,7 +27,11 @@ The result is checked as an export is: ``verify.check`` runs the rebuilt model a
 folder's own graphs, and any difference past the export tolerances is an error.  On the demo
 (``models/parq-demo``, 17 s) the largest differences are 1.6e-5 on the backbone's outputs and
 6.7e-6 on the layer's, as in the demo's own export check; exported again, the rebuilt model
-gives the demo's detections and its F1 on 10 validation scenes exactly.
+gives the demo's detections and its F1 on 10 validation scenes exactly.  The configuration is
+the card's own ``config`` with the post-processing, query ranking, snippet gap and run setting
+taken from the rest of the card (:func:`card_config`): a tuning rewrites those there, and the
+demo's ``config`` still holds an early tuning's (score 0.7, ``mean`` fusion, support 2, no
+mirror runs, scene NMS or floor prior), which the demo rebuilt and exported again got before.
 
     python -m parq_export.rebuild models/parq-demo -o work/demo-rebuilt.pt
 """
@@ -167,12 +171,29 @@ def locate(values: np.ndarray, total: int) -> tuple:
     return np.where(hit, k, np.where(scaled, k2, -1)), scaled
 
 
+def card_config(card) -> PARQConfig:
+    """The folder's configuration: the card's ``config`` (the exporter's PARQConfig as it
+    was), with what the runtime reads from elsewhere in the card taken from there, since a
+    tuning rewrites those (parq_export.card_rewrite) and older cards' ``config`` predates
+    some: the post-processing, the query ranking, the snippet gap and the run setting.  So
+    the rebuilt checkpoint exports to the card it came from."""
+    order = card.query_order
+    return PARQConfig.from_dict(card.raw["config"]).replace(
+        score_threshold=card.score_threshold, nms_iou=card.nms_iou,
+        eval_region=card.eval_region, fusion=card.fusion, min_support=card.min_support,
+        ray_ratio=card.ray_ratio, scene_nms=card.scene_nms, floor_classes=card.floor_classes,
+        floor_weight=card.floor_weight, labels=card.labels,
+        query_order=() if order is None else tuple(int(i) for i in order),
+        snippet_gap=card.snippet_gap, run_iters=card.run_iters, run_queries=card.run_queries,
+        run_mirror=card.run_mirror)
+
+
 def rebuild(folder, opset: int = DEFAULT_OPSET, log=print) -> PARQ:
     """The torch PARQ whose export is the model folder ``folder``; raises ParqError when a
     parameter is not found in its graphs or the rebuilt model does not reproduce them."""
     folder = pathlib.Path(folder)
     card = model_card.load(folder)
-    config = PARQConfig.from_dict(card.raw["config"])
+    config = card_config(card)
     probe, names, offsets = probe_model(config)
     total = sum(len(o) for o in offsets.values())
     entry, position = np.empty(total, np.int64), np.empty(total, np.int64)

@@ -34,6 +34,27 @@ def test_rebuild_gives_back_the_exported_weights(tiny_checkpoint, tiny_model):
             assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
 
 
+def test_rebuild_keeps_what_a_tuning_wrote_into_the_card(tiny_model, tmp_path):
+    """A tuning rewrites the card, not the card's ``config``: the rebuilt checkpoint takes the
+    post-processing and run setting from the card, so that exported again it gives the same
+    card."""
+    from parq_export import card_rewrite, checkpoint, rebuild
+    from parq_export.export import export
+
+    def update(card):
+        card["postprocess"].update(score_threshold=0.6, fusion="ray", min_support=3,
+                                   ray_ratio=30.0, scene_nms=0.1, floor_classes=["chair"],
+                                   floor_weight=10.0, labels="vote")
+        card["run"] = {"iters": 3, "queries": 8, "mirror": True}
+
+    tuned = card_rewrite.rewrite(tiny_model, tmp_path / "tuned", update)
+    model = rebuild.rebuild(tmp_path / "tuned", log=lambda *_: None)
+    checkpoint.save(tmp_path / "rebuilt.pt", model)
+    again = export(tmp_path / "rebuilt.pt", tmp_path / "again", log=lambda *_: None).card
+    for key in ("postprocess", "run", "query_order"):
+        assert again[key] == tuned[key], key
+
+
 def test_a_probe_value_is_found_and_other_values_are_not():
     from parq_export import rebuild
 
