@@ -193,13 +193,7 @@ class SceneFusion:
         back); returns the cluster index each detection went to."""
         if not detections:
             return []
-        assigned = [-1] * len(detections)
-        if self.clusters:
-            iou = iou_matrix(detections, [c.fused for c in self.clusters], self.up)
-            rows, cols = linear_sum_assignment(-iou)
-            for d, t in zip(rows, cols):
-                if iou[d, t] >= self.iou_threshold:
-                    assigned[d] = int(t)
+        assigned = self._match(detections)
         for d, det in enumerate(detections):
             if assigned[d] < 0:
                 assigned[d] = len(self.clusters)
@@ -208,6 +202,18 @@ class SceneFusion:
             cluster.members.append(det)
             cluster.runs.append((snippet, bool(mirrored)))
             cluster.fused = self._summarise(cluster)
+        return assigned
+
+    def _match(self, detections: list) -> list:
+        """The scene box (cluster index) each detection joins, -1 for none: the Hungarian
+        assignment on 3D IoU, pairs under ``iou_threshold`` left unmatched."""
+        assigned = [-1] * len(detections)
+        if self.clusters:
+            iou = iou_matrix(detections, [c.fused for c in self.clusters], self.up)
+            rows, cols = linear_sum_assignment(-iou)
+            for d, t in zip(rows, cols):
+                if iou[d, t] >= self.iou_threshold:
+                    assigned[d] = int(t)
         return assigned
 
     def _summarise(self, cluster: _Cluster, floor: float | None = None):
