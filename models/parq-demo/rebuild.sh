@@ -17,7 +17,7 @@ parq-export work/demo-ranked.pt -o work/parq-demo-ranked --force
 # chooses the post-processing for 2 iterations x 64 queries with mirror runs, the card's run
 # setting, on all 160 validation scenes (ray fusion, support 4 runs, ratio 30, then scene NMS
 # 0.1, then the floor prior for chairs, tables, trash bins, bookshelves and bathtubs at weight
-# 3, for these weights; 35 minutes on a 2-core EPYC); the tuning of a model folder keeps its query ranking
+# 3, then labels by vote, for these weights; 35 minutes on a 2-core EPYC); the tuning of a model folder keeps its query ranking
 # and writes a new folder
 rm -rf work/parq-demo
 python -m parq_train.tune work/parq-demo-ranked --data data/val data/val2 --queries 64 --mirror -o work/parq-demo
