@@ -51,8 +51,9 @@ that call it different things (a bin and an "other", a cabinet and a bookshelf),
 confident wrong call outvoted several right ones.  On the demo's 160 validation scenes, with
 its card otherwise unchanged, ``vote`` scored F1@0.25 +0.007 (+0.000 to +0.014, paired, ahead
 in 95% of the resamples) and F1@0.5 +0.010 (+0.003 to +0.017, 99%); summing class
-probabilities instead of the argmax scores gave the same (+0.006 / +0.009)
-(docs/demo-experiments.md, "Scene boxes labelled by a vote").
+probabilities instead of the argmax scores gave the same (+0.006 / +0.009).  Chosen there by
+parq_train.tune, on the 120 held-out scenes it scores +0.007 (-0.003 to +0.016) and +0.009
+(+0.001 to +0.018) (docs/demo-experiments.md, "Scene boxes labelled by a vote").
 
 ``min_support``: a scene box is reported only when detections from at least that many
 snippets support it; spurious detections rarely recur, real objects seen from several
@@ -70,8 +71,8 @@ at its card's threshold and region: mean/2 0.494 / 0.274, ray/2 (ratio 5) 0.534 
 demo's run setting (2 iterations x 64 queries), the ratio is 30: 0.489 / 0.307 on 120 held-out
 scenes (README); with mirror runs, the card's run setting since, support 4 runs: 0.504 / 0.354;
 with scene NMS 0.05 after that: 0.523 / 0.349; with sizes averaged in one box's axes
-(``aligned_size``), 0.540 / 0.356; with the floor prior (the current card: scene NMS 0.1, five
-floor classes at weight 3), 0.577 / 0.375.
+(``aligned_size``), 0.540 / 0.356; with the floor prior (scene NMS 0.1, five floor classes at
+weight 3), 0.577 / 0.375; with labels by vote (the current card), 0.583 / 0.385.
 """
 from __future__ import annotations
 
