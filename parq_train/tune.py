@@ -337,11 +337,13 @@ def floor_pairs(fused: list, min_support: int, floor_classes, weight: float, swe
 
 
 def select_labels(records: list, classes, best: dict, sweep, mirror: bool = False) -> tuple:
-    """(``best`` with the label rule chosen, the rows tried): each of LABEL_RULES (the
-    authors' first, which wins ties; parq_runtime.fusion) with everything else ``best``'s,
-    floor prior included."""
-    rows = []
+    """(``best`` with the label rule chosen, the rows tried): ``best`` itself, scored with the
+    authors' rule (which wins ties; parq_runtime.fusion), then each other rule of LABEL_RULES
+    with everything else ``best``'s, floor prior included."""
+    rows = [best]
     for labels in LABEL_RULES:
+        if labels == best["labels"]:
+            continue
         fused = fuse_records(records, best["score_threshold"], best["eval_region"],
                              best["fusion"], best["ray_ratio"], mirror, best["scene_nms"],
                              labels)

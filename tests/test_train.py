@@ -186,7 +186,8 @@ def test_tune_chooses_the_label_vote_when_it_scores_and_the_authors_rule_on_ties
     truth = [box("table", 1.0)[0]]
     up = (0.0, 0.0, 1.0)
     records = [([[box("table", 0.85)], [box("chair", 0.9)], [box("table", 0.85)]], truth, up)]
-    best = tune.row_of(0.5, tune.REGIONS[-1], "mean", 2, 10.0, {}, 0.1)
+    best = tune.candidate(records, ["chair", "table"], 0.5, tune.REGIONS[-1], "mean", 2, 10.0,
+                          scene_nms=0.1)
 
     def no_floor(n, guess):
         raise AssertionError("no floor classes: no floor is looked for")
@@ -197,6 +198,8 @@ def test_tune_chooses_the_label_vote_when_it_scores_and_the_authors_rule_on_ties
     assert {k: chosen[k] for k in tune.CHOSEN if k != "labels"} == {
         k: best[k] for k in tune.CHOSEN if k != "labels"}
     agreeing = [([[box("table", 0.85)], [box("table", 0.9)]], truth, up)]
+    best = tune.candidate(agreeing, ["chair", "table"], 0.5, tune.REGIONS[-1], "mean", 2, 10.0,
+                          scene_nms=0.1)
     chosen, rows = tune.select_labels(agreeing, ["chair", "table"], best, no_floor)
     assert rows[0]["f1@0.25"] == rows[1]["f1@0.25"] == 1.0 and chosen["labels"] == "best"
 
