@@ -118,6 +118,34 @@ def open_validation(args, prog: str) -> tuple:
         sys.exit(f"{prog}: {e}")
 
 
+def snippet_views(capture, card):
+    """Yields (images, K (N, 3, 3), T_world_camera (N, 4, 4)) of each snippet that parq-run
+    makes of ``capture`` at the card's run setting, images read from disk one snippet at a
+    time."""
+    from parq_runtime import scene
+
+    _, snippets = scene.plan(capture, scene.resolved(scene.RunSettings(), card), card)
+    for indices in snippets:
+        frames = [capture.frames[i] for i in indices]
+        yield ([f.load_image() for f in frames], np.stack([f.intrinsics for f in frames]),
+               np.stack([f.cam_to_world for f in frames]))
+
+
+def run_boxes(iteration, T_world_local, detector, up, mirrored: bool) -> list:
+    """[(box, its local center)] of one snippet run's ``iteration``: every box above score 0
+    after the card's NMS, in any region, reflected back when the run was ``mirrored``.  The
+    local center is in the run's own snippet frame: a region is symmetric in x, so a mirrored
+    run's center keeps what the plain run's would."""
+    from parq_runtime import boxes as box_decoding
+    from parq_runtime import geometry, mirror
+
+    T_local_world = geometry.invert(T_world_local)
+    found = box_decoding.detections(iteration, T_world_local, detector.classes, 0.0,
+                                    detector.card.nms_iou, None, up)
+    return [(mirror.unmirror_box(b, up) if mirrored else b,
+             geometry.transform(T_local_world, b.center)) for b in found]
+
+
 def write_report(out: pathlib.Path, lines: list, record) -> None:
     """Print the markdown ``lines`` and write them to ``out``.md, ``record`` to ``out``.json
     (folders made as needed)."""

@@ -89,20 +89,13 @@ def collect(detector, folders: list, crops: tuple, references: tuple, iters: int
     """(records, seconds): per scene (snippets, truth, up), a snippet a dict {(kind, mirrored):
     [(box, its local center)]} with kind an iteration number, ("crop", C) or ("reference", R);
     seconds: per kind of run, the median time of a snippet's two runs (plain and mirrored)."""
-    from parq_runtime import boxes as box_decoding
-    from parq_runtime import evaluation, geometry, mirror, readers, scene
+    from parq_runtime import evaluation, mirror, readers
 
     records, seconds = [], {}
     for folder in folders:
         capture = readers.open_capture(folder)
-        settings = scene.resolved(scene.RunSettings(), detector.card)
-        _, snippets = scene.plan(capture, settings, detector.card)
         runs_of_scene = []
-        for indices in snippets:
-            frames = [capture.frames[i] for i in indices]
-            images = [f.load_image() for f in frames]
-            K = np.stack([f.intrinsics for f in frames])
-            T_world_camera = np.stack([f.cam_to_world for f in frames])
+        for images, K, T_world_camera in common.snippet_views(capture, detector.card):
             runs = {}
             for kind, run_iters, views_of in looks(crops, references, iters):
                 views = views_of(images, K, T_world_camera)
@@ -111,17 +104,11 @@ def collect(detector, folders: list, crops: tuple, references: tuple, iters: int
                     inputs = mirror.mirror_snippet(*views, capture.up) if mirrored else views
                     found = detector.detect(*inputs, iters=run_iters, queries=queries,
                                             score_threshold=0.0, region=False, up=capture.up)
-                    T_local_world = geometry.invert(found.T_world_local)
-                    decoded = []   # every iteration's boxes for kind None, else the last's
-                    for it in found.iterations if kind is None else found.iterations[-1:]:
-                        boxes = box_decoding.detections(it, found.T_world_local,
-                                                        detector.classes, 0.0,
-                                                        detector.card.nms_iou, None, capture.up)
-                        # local centers in the run's own snippet frame: the region is
-                        # symmetric in x, so a mirrored run's keeps what the plain one would
-                        decoded.append([(mirror.unmirror_box(b, capture.up) if mirrored else b,
-                                         geometry.transform(T_local_world, b.center))
-                                        for b in boxes])
+                    # every iteration's boxes for kind None, else the last's
+                    decoded = [common.run_boxes(it, found.T_world_local, detector, capture.up,
+                                                mirrored)
+                               for it in (found.iterations if kind is None
+                                          else found.iterations[-1:])]
                     if kind is None:
                         for k, boxes in enumerate(decoded):
                             runs[k + 1, mirrored] = boxes
@@ -139,7 +126,7 @@ def collect(detector, folders: list, crops: tuple, references: tuple, iters: int
 def fuse(records: list, kinds: list, card, threshold: float) -> list:
     """Per scene, a SceneFusion (support 1) of the runs ``kinds`` (each plain and mirrored) of
     every snippet, boxes above ``threshold`` in the card's region, with the card's fusion, and
-    its floor found as parq-run finds it (set when a support is applied: :func:`pairs`)."""
+    its floor found as parq-run finds it when a support is applied (tune.floor_pairs)."""
     from parq_runtime.fusion import SceneFusion
 
     region = card.eval_region
@@ -156,21 +143,6 @@ def fuse(records: list, kinds: list, card, threshold: float) -> list:
                 fusion.add(kept, n * 2 * len(kinds) + j)
         fused.append((fusion, truth, up))
     return fused
-
-
-def pairs(fused: list, support: int, sweep) -> list:
-    """(boxes, truth, up) per scene at ``support``, the floor found near the kept boxes."""
-    from parq_runtime import floor
-
-    out = []
-    for n, (fusion, truth, up) in enumerate(fused):
-        fusion.min_support = support
-        fusion.floor_height = None
-        if fusion.floor_classes:
-            fusion.floor_height = floor.locate(fusion.floor_guess(),
-                                               lambda guess: sweep(n, guess))[0]
-        out.append((fusion.boxes, truth, up))
-    return out
 
 
 def main() -> int:
@@ -206,8 +178,11 @@ def main() -> int:
         sets[f"{iters} iterations + reference views {args.references}"] = [iters] + [
             ("reference", r) for r in args.references]
     rows, counts = [], []
+    def pairs(fused, support):    # the floor found near the kept boxes, as parq-run does
+        return tune.floor_pairs(fused, support, card.floor_classes, card.floor_weight, sweep)
+
     baseline = spread.counts_of(pairs(fuse(records, [iters], card, card.score_threshold),
-                                      base_support, sweep), detector.classes)
+                                      base_support), detector.classes)
     for name, kinds in sets.items():
         runs = 2 * len(kinds)
         supports = range(runs, 2 * runs + 1)   # the card's: 4 of its 2 runs
@@ -215,7 +190,7 @@ def main() -> int:
         for threshold in THRESHOLDS:
             fused = fuse(records, kinds, card, threshold)
             for support in supports:
-                c = spread.counts_of(pairs(fused, support, sweep), detector.classes)
+                c = spread.counts_of(pairs(fused, support), detector.classes)
                 f = spread.f1(c.sum(axis=0))
                 if best is None or (f.sum(), f[1]) > (best[0].sum(), best[0][1]):
                     best = (f, threshold, support, c)

@@ -9,9 +9,10 @@ and training continues with the recipe's objective, batch, iterations and schedu
 scenes ``--first`` .. ``--first + --scenes - 1`` (parq-synth seed 1000, 30 frames, generated
 into --data when missing: the recipe's are 0-1599, so --first 1600 gives new rooms).
 
-The result is exported, given the demo's card settings (post-processing, run setting, query
-order) and scored as parq-run runs it on the validation scenes, paired against the demo over
-10,000 resamples of the scenes (spread.py).  Writes results/finetune_demo-NAME.{md,json}.
+The result is exported, with the demo's card settings (post-processing, run setting, query
+order: the rebuilt configuration carries them), and scored as parq-run runs it on the
+validation scenes, paired against the demo over 10,000 resamples of the scenes (spread.py).
+Writes results/finetune_demo-NAME.{md,json}.
 
     python benchmarks/finetune_demo.py --steps 2000 --lr 1e-4 --name A --val data/val data/val2
     python benchmarks/finetune_demo.py --steps 3000 --lr 1e-4 --first 1600 --name C \\
@@ -34,9 +35,7 @@ from parq_train import tune
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--model", type=pathlib.Path, default=common.ROOT / "models" / "parq-demo")
-    p.add_argument("--val", type=pathlib.Path, nargs="+", required=True,
-                   help="validation folders of scenes (data/val data/val2)")
+    common.validation_arguments(p)
     p.add_argument("--data", type=pathlib.Path, default=common.ROOT / "data" / "train1600",
                    help="parq-train's training scenes (generated where missing)")
     p.add_argument("--first", type=int, default=0, help="first training scene to train on")
@@ -52,7 +51,7 @@ def main() -> int:
 
     import torch
 
-    from parq_export import card_rewrite, checkpoint, export, rebuild
+    from parq_export import checkpoint, export, rebuild
     from parq_runtime import Detector, model_card
     from parq_runtime.errors import ParqError
     from parq_train import cli, data, train
@@ -79,13 +78,10 @@ def main() -> int:
     ckpt = args.work / f"{args.name}.pt"
     checkpoint.save(ckpt, model, {"finetune": {k: str(v) for k, v in vars(args).items()},
                                   "history": history})
-    raw, tuned = args.work / f"{args.name}-export", args.work / f"{args.name}-model"
-    export.export(ckpt, raw, overwrite=True, log=lambda *_: None)
-
-    def as_demo(card):
-        for key in ("postprocess", "run", "query_order"):
-            card[key] = demo.raw[key]
-    card_rewrite.rewrite(raw, tuned, as_demo, overwrite=True)
+    # the rebuilt configuration carries the demo card's post-processing, run setting and
+    # query order (rebuild.card_config), so the export has the demo's card
+    tuned = args.work / f"{args.name}-model"
+    export.export(ckpt, tuned, overwrite=True, log=lambda *_: None)
     iters, queries = demo.run_setting()
     counts = []
     for folder in (args.model, tuned):

@@ -55,18 +55,13 @@ def objectness_logits(logits: np.ndarray) -> np.ndarray:
 def collect(detector, folders: list, iters: int, queries: int) -> list:
     """Per scene ([(snippet, mirrored, last Iteration, T_world_local)], truth, up): each
     snippet run plain and mirrored (the card's run setting), nothing filtered."""
-    from parq_runtime import evaluation, mirror, readers, scene
+    from parq_runtime import evaluation, mirror, readers
 
     records = []
     for folder in folders:
         capture = readers.open_capture(folder)
-        settings = scene.resolved(scene.RunSettings(), detector.card)
-        _, snippets = scene.plan(capture, settings, detector.card)
         runs = []
-        for n, indices in enumerate(snippets):
-            frames = [capture.frames[i] for i in indices]
-            views = ([f.load_image() for f in frames], np.stack([f.intrinsics for f in frames]),
-                     np.stack([f.cam_to_world for f in frames]))
+        for n, views in enumerate(common.snippet_views(capture, detector.card)):
             for mirrored in (False, True):
                 inputs = mirror.mirror_snippet(*views, capture.up) if mirrored else views
                 found = detector.detect(*inputs, iters=iters, queries=queries,
@@ -79,11 +74,9 @@ def collect(detector, folders: list, iters: int, queries: int) -> list:
 
 def decoded(records: list, detector, objectness: bool) -> list:
     """Per scene ([(snippet, mirrored, [(box with .probs (classes,), its local center)])],
-    truth, up): the runs' boxes above score 0 after the card's NMS, reflected back when
-    mirrored; the local center is in the run's own snippet frame (the region is symmetric in
-    x, so a mirrored run's keeps what the plain one would)."""
+    truth, up): the runs' boxes as common.run_boxes decodes them, each with the class
+    probabilities of its query."""
     from parq_runtime import boxes as box_decoding
-    from parq_runtime import geometry, mirror
 
     out = []
     for runs, truth, up in records:
@@ -92,16 +85,9 @@ def decoded(records: list, detector, objectness: bool) -> list:
             probs = box_decoding.softmax(np.asarray(last.logits, dtype=np.float64))
             if objectness:
                 last = dataclasses.replace(last, logits=objectness_logits(last.logits))
-            found = box_decoding.detections(last, T_world_local, detector.classes, 0.0,
-                                            detector.card.nms_iou, None, up)
-            T_local_world = geometry.invert(T_world_local)
-            boxes = []
-            for b in found:
-                local = geometry.transform(T_local_world, b.center)
-                if mirrored:
-                    b = mirror.unmirror_box(b, up)
+            boxes = common.run_boxes(last, T_world_local, detector, up, mirrored)
+            for b, _ in boxes:
                 b.probs = probs[b.query, :-1]
-                boxes.append((b, local))
             scene.append((n, mirrored, boxes))
         out.append((scene, truth, up))
     return out
@@ -178,12 +164,11 @@ VARIANTS = {   # name: (objectness, threshold, fusion knobs, matching IoU)
 def fused_pairs(scenes: list, card, Variant, knobs: dict, threshold: float, match_iou,
                 sweep) -> list:
     """(scene boxes, truth, up) per scene with the card's fusion and the variant's knobs."""
-    from parq_runtime import floor
     from parq_runtime.fusion import MATCH_IOU
 
     region = card.eval_region
-    pairs = []
-    for n, (runs, truth, up) in enumerate(scenes):
+    fused = []
+    for runs, truth, up in scenes:
         fusion = Variant(iou_threshold=MATCH_IOU if match_iou is None else match_iou, up=up,
                          mode=card.fusion, min_support=card.min_support,
                          ray_ratio=card.ray_ratio, scene_nms=card.scene_nms,
@@ -194,11 +179,9 @@ def fused_pairs(scenes: list, card, Variant, knobs: dict, threshold: float, matc
             kept = [b for b, c in boxes if b.score > threshold
                     and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]]
             fusion.add(kept, snippet, mirrored)
-        if fusion.floor_classes:
-            fusion.floor_height = floor.locate(fusion.floor_guess(),
-                                               lambda guess: sweep(n, guess))[0]
-        pairs.append((fusion.boxes, truth, up))
-    return pairs
+        fused.append((fusion, truth, up))
+    return tune.floor_pairs(fused, card.min_support, card.floor_classes, card.floor_weight,
+                            sweep)
 
 
 def merged(pairs: list, classes) -> list:

@@ -95,8 +95,7 @@ def collect(detector, folders: list) -> list:
     records = []
     for folder in folders:
         capture = readers.open_capture(folder)
-        settings = scene.RunSettings()
-        result = scene.run(detector, capture, settings)
+        result = scene.run(detector, capture, scene.RunSettings())
         fusion = result.fusion
         card_boxes = fusion.boxes
         fusion.min_support = 1
@@ -104,13 +103,8 @@ def collect(detector, folders: list) -> list:
         centers = np.array([b.center for b in boxes], dtype=np.float64).reshape(-1, 3)
         labels = np.array([b.label for b in boxes], dtype=np.int64)
         verified = {v: ([[] for _ in boxes], [[] for _ in boxes]) for v in VARIANTS}
-        _, snippets = scene.plan(capture, scene.resolved(settings, card), card)
         M = mirror.world_reflection(capture.up)
-        for indices in snippets if len(boxes) else []:
-            frames = [capture.frames[i] for i in indices]
-            images = [f.load_image() for f in frames]
-            K = np.stack([f.intrinsics for f in frames])
-            T_world_camera = np.stack([f.cam_to_world for f in frames])
+        for images, K, T_world_camera in common.snippet_views(capture, card) if boxes else []:
             plain = requery(detector, images, K, T_world_camera, centers, capture.up, learned)
             chosen, out = requery(detector, *mirror.mirror_snippet(images, K, T_world_camera,
                                                                    capture.up),
@@ -149,9 +143,10 @@ def auc(scores, positive) -> float:
     return float((ranks[positive].sum() - n1 * (n1 + 1) / 2) / (n1 * n0))
 
 
-def centre_errors(records: list) -> dict:
-    """Median distance to the matched object's center (IoU >= 0.1, same class) of the card's
-    candidates at its support, fused against verified (mean of the verified centers)."""
+def centre_errors(records: list, support: int) -> dict:
+    """Median distance to the matched object's center (IoU >= 0.1, same class) of the
+    candidates at the card's ``support``, fused against verified (mean of the verified
+    centers)."""
     from parq_runtime.iou import iou_matrix
 
     errors = {"fused": []} | {f"{v} {k}": [] for v, k in VARIANTS}
@@ -163,7 +158,7 @@ def centre_errors(records: list) -> dict:
             j = int(np.argmax(iou[c]))
             verified = [r["centers"][key][c] for key in VARIANTS]
             if iou[c, j] < 0.1 or r["truth"][j].class_name != box.class_name \
-                    or r["supports"][c] < 4 or any(v is None for v in verified):
+                    or r["supports"][c] < support or any(v is None for v in verified):
                 continue
             errors["fused"].append(np.linalg.norm(box.center - r["truth"][j].center))
             for (v, k), center in zip(VARIANTS, verified):
@@ -208,7 +203,7 @@ def main() -> int:
         counts.append(best[3])
         print(rows[-1], np.round(best[0], 3), flush=True)
     stats = spread.spread([baseline] + counts, 10000, 40)
-    errors = centre_errors(records)
+    errors = centre_errors(records, detector.card.min_support)
     machine = common.machine()
     card = detector.card
     lines = [f"Re-querying scene boxes, {args.model.name}, on {len(folders)} validation scenes "

@@ -82,9 +82,10 @@ def constants(proto: onnx.ModelProto) -> dict:
 def correspondence(mine: onnx.ModelProto, theirs: onnx.ModelProto, my_constants: dict,
                    their_constants: dict) -> dict:
     """{constant of ``mine``: the constant of ``theirs`` that the same input of the same node
-    reads} (the constants being each graph's :func:`constants`), in every graph scope whose nodes are the same ops in the same order (the same
-    exporter).  Names alone do not do: an export merges equal constants (a fresh model's batch
-    norms are all alike), and the probe's, all distinct, are not merged."""
+    reads} (the constants being each graph's :func:`constants`), in every graph scope whose
+    nodes are the same ops in the same order (the same exporter).  Names alone do not do: an
+    export merges equal constants (a fresh model's batch norms are all alike), and the
+    probe's, all distinct, are not merged."""
     def scopes(proto, names):
         out = {}
 
