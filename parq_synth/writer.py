@@ -10,7 +10,8 @@ Layout of ``scene_<k>/`` (k = the scene's index, 5 digits):
     intrinsic/intrinsic_depth.txt   the same (depth is registered to colour)
     intrinsic/extrinsic_color.txt   identity (as ScanNet writes them)
     intrinsic/extrinsic_depth.txt   identity
-    boxes.json                      ground-truth boxes in the world frame
+    boxes.json                      ground-truth boxes in the world frame; each box's
+                                    "visible" record says how much of it the capture shows
     scene.json                      provenance: seed, index, generator version, room, lights
 
 A scene is rendered into a hidden temporary folder next to it and renamed into place when
@@ -56,6 +57,7 @@ def write_scene_files(scene: Scene, folder: pathlib.Path, timings: list | None =
         (folder / sub).mkdir(parents=True, exist_ok=True)
     comp = scene.compiled()
     rays = render_mod.camera_rays(scene.camera, scene.size)
+    shown = Visibility(len(scene.objects))
     for i, T in enumerate(scene.poses):
         t0 = time.perf_counter()
         view = render_mod.render(scene, T, rng_for(scene.seed, scene.index, STREAM_NOISE, i),
@@ -65,14 +67,41 @@ def write_scene_files(scene: Scene, folder: pathlib.Path, timings: list | None =
         _imwrite(folder / "color" / f"{i}.png", view.rgb[..., ::-1])
         _imwrite(folder / "depth" / f"{i}.png", depth_to_mm(view.depth))
         _imwrite(folder / "instance" / f"{i}.png", (view.instance + 1).astype(np.uint8))
+        shown.add(view.instance)
         np.savetxt(folder / "pose" / f"{i}.txt", T, fmt="%.17g")
     K4 = _intrinsic4(scene.K)
     for name in ("intrinsic_color", "intrinsic_depth"):
         np.savetxt(folder / "intrinsic" / f"{name}.txt", K4, fmt="%.17g")
     for name in ("extrinsic_color", "extrinsic_depth"):
         np.savetxt(folder / "intrinsic" / f"{name}.txt", np.eye(4), fmt="%.17g")
-    (folder / "boxes.json").write_text(json.dumps(scene.boxes_json(), indent=1) + "\n")
+    (folder / "boxes.json").write_text(json.dumps(shown.annotate(scene.boxes_json()), indent=1)
+                                       + "\n")
     (folder / "scene.json").write_text(json.dumps(scene_json(scene), indent=1) + "\n")
+
+
+class Visibility:
+    """How much of each object a capture shows, from its frames' instance masks (the z-buffer's
+    nearest surface, so occluded parts do not count): the frames that show any of it and the
+    most pixels one frame shows.  parq-synth's rooms hold objects that the camera path may
+    never face; ScanNet's ground truth comes from the reconstructed scan, where such an object
+    has no box.  The record lets an evaluation leave them out (``parq-eval --seen-only``)."""
+
+    def __init__(self, objects: int):
+        self.frames = np.zeros(objects, dtype=np.int64)
+        self.max_pixels = np.zeros(objects, dtype=np.int64)
+
+    def add(self, instance: np.ndarray) -> None:
+        """instance (H, W) int: object index per pixel, -1 the room."""
+        pixels = np.bincount(instance[instance >= 0].ravel(),
+                             minlength=len(self.frames))[:len(self.frames)]
+        self.frames += pixels > 0
+        self.max_pixels = np.maximum(self.max_pixels, pixels)
+
+    def annotate(self, boxes_json: dict) -> dict:
+        """``boxes_json`` with each box's {"visible": {"frames", "max_pixels"}} added."""
+        for box, frames, pixels in zip(boxes_json["boxes"], self.frames, self.max_pixels):
+            box["visible"] = {"frames": int(frames), "max_pixels": int(pixels)}
+        return boxes_json
 
 
 def depth_to_mm(depth: np.ndarray) -> np.ndarray:

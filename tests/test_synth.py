@@ -396,6 +396,32 @@ def test_objects_are_seen_by_the_camera():
     assert (pixels > 20).mean() >= 0.75, pixels
 
 
+def test_boxes_json_records_what_the_capture_shows_of_each_object(tmp_path):
+    """"visible": the frames whose instance mask holds the object and its most pixels in one,
+    as the written masks count them; an object behind the camera is shown in no frame."""
+    size = np.array([0.6, 0.4, 0.5])
+    scene = _single_object_scene([shapes.box_prim(-size / 2, size / 2, (0.8, 0.2, 0.2))],
+                                 size=(40, 30))
+    shown = scene.objects[0]
+    camera_xy = scene.poses[0][:2, 3]
+    behind_xy = camera_xy + 0.6 * (camera_xy - shown.center[:2]) / np.linalg.norm(
+        camera_xy - shown.center[:2])
+    hidden = SceneObject.place("other", [shapes.box_prim(-size / 4, size / 4, (0.2, 0.8, 0.2))],
+                               behind_xy, 0.0)
+    frames = np.stack([scene.poses[0], scene.poses[0]])
+    frames[1, :3, 3] += [0.0, 0.0, 0.05]                   # a second, slightly higher view
+    scene = dataclasses.replace(scene, objects=[shown, hidden], poses=frames)
+    writer.write_scene_files(scene, tmp_path)
+    records = [b["visible"] for b in json.loads((tmp_path / "boxes.json").read_text())["boxes"]]
+    masks = [cv2.imread(str(tmp_path / "instance" / f"{i}.png"), cv2.IMREAD_UNCHANGED)
+             for i in range(2)]
+    pixels = np.array([[(m == 1 + j).sum() for j in range(2)] for m in masks])
+    assert records == [{"frames": int((pixels[:, j] > 0).sum()),
+                        "max_pixels": int(pixels[:, j].max())} for j in range(2)]
+    assert records[0]["frames"] == 2 and records[0]["max_pixels"] > 50
+    assert records[1] == {"frames": 0, "max_pixels": 0}
+
+
 # ----------------------------------------------------------------------------- determinism
 
 def _json(scene):
@@ -526,6 +552,8 @@ def test_cli_writes_scenes(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene_00004", "scene_00005"]
     assert "scene_00005" in capsys.readouterr().out
     a = json.loads((tmp_path / "scene_00005" / "boxes.json").read_text())
+    visible = [b.pop("visible") for b in a["boxes"]]        # what the frames show: rendered
+    assert all(0 <= v["frames"] <= 2 and v["max_pixels"] >= 0 for v in visible)
     assert a == build_scene(3, 5, frames=2, size=(32, 24)).boxes_json()
 
 
