@@ -63,11 +63,13 @@ def held_out_scenes(folder: pathlib.Path, scenes: int, frames: int, size) -> lis
 
 
 def run_scenes(detector, scenes, iters, queries, score_threshold=None, gap=None,
-               mirror=None, **settings) -> tuple:
+               mirror=None, seen_only=False, **settings) -> tuple:
     """parq-run's pipeline on each scene: ([(fused boxes, ground-truth boxes, up), ...] in
     scene order, per-snippet seconds, a snippet's mirror run included); ``gap``: keyframes
     between a snippet's views, ``mirror``: whether to add mirror runs (None: the model
-    card's); further ``settings``: other scene.RunSettings fields (ray_ratio, min_support)."""
+    card's); ``seen_only``: only the ground-truth boxes some frame shows (parq-eval
+    --seen-only); further ``settings``: other scene.RunSettings fields (ray_ratio,
+    min_support)."""
     from parq_runtime import evaluation, readers, scene
 
     pairs, seconds = [], []
@@ -76,7 +78,7 @@ def run_scenes(detector, scenes, iters, queries, score_threshold=None, gap=None,
     for folder in scenes:
         capture = readers.open_capture(folder)
         result = scene.run(detector, capture, settings)
-        truth, up = evaluation.load_ground_truth(folder / "boxes.json")
+        truth, up = evaluation.load_ground_truth(folder / "boxes.json", seen_only)
         pairs.append((result.fusion.boxes, truth, up))
         seconds += [s.seconds for s in result.snippets]
     return pairs, seconds

@@ -14,6 +14,13 @@ Three deliberate differences from their code, each documented in the README:
   overlaps most (theirs: prediction list order, first box above the threshold).
 * the pooled average counts every class.  Theirs skips classes with no prediction at all, so
   the ground truth of a class the model never predicts did not lower recall.
+
+``--seen-only`` scores against the boxes some frame of the capture shows.  ScanNet's boxes come
+from the reconstructed scan, so an object its camera never saw has none; parq-synth's
+boxes.json lists every object in the room, and records per box how much of it the capture shows
+(``"visible": {"frames", "max_pixels"}``, from the rendered instance masks).  The option drops
+boxes with ``frames == 0`` before matching; a prediction on such an object is then a false
+positive, as it would be against ScanNet's boxes.  The default counts every box.
 """
 from __future__ import annotations
 
@@ -33,18 +40,33 @@ THRESHOLDS = (0.25, 0.5, 0.7)
 BOXES_FORMAT = "parq-onnx-boxes"
 
 
-def load_ground_truth(path) -> tuple:
-    """(boxes, up) from a boxes.json written by parq-synth (or by hand, same schema)."""
+def load_ground_truth(path, seen_only: bool = False) -> tuple:
+    """(boxes, up) from a boxes.json written by parq-synth (or by hand, same schema);
+    ``seen_only``: only the boxes whose "visible" record says some frame shows them."""
     path = pathlib.Path(path)
     data = read_json(path)
     if not isinstance(data, dict) or data.get("format") != BOXES_FORMAT:
         raise ParqError(f"{path}: not a ground-truth boxes.json (format {BOXES_FORMAT!r})")
     try:
-        boxes = [Box.from_json(b) for b in data["boxes"]]
+        records = data["boxes"]
+        if seen_only:
+            records = [b for b in records if _shown(b, path)]
+        boxes = [Box.from_json(b) for b in records]
         up = tuple(float(v) for v in data.get("up", geometry.UP_Z))
     except (KeyError, TypeError, ValueError) as e:
         raise ParqError(f"{path}: malformed box ({e})") from None
     return boxes, up
+
+
+def _shown(record, path) -> bool:
+    """Whether a box record's "visible" entry says some frame shows it."""
+    visible = record.get("visible") if isinstance(record, dict) else None
+    frames = visible.get("frames") if isinstance(visible, dict) else None
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 0:
+        raise ParqError(f"{path}: a box has no valid \"visible\": {{\"frames\": N}} record, "
+                        "which --seen-only needs (parq-synth writes one per box; scenes it "
+                        "generated before that have none: generate the scene again)")
+    return frames > 0
 
 
 def match_counts(predictions: list, truth: list, threshold: float, classes: list,
@@ -148,9 +170,13 @@ def main(argv=None) -> int:
     p.add_argument("predictions", type=pathlib.Path, help="parq-run output JSON")
     p.add_argument("ground_truth", type=pathlib.Path, help="boxes.json of the scene")
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
+    p.add_argument("--seen-only", action="store_true",
+                   help="score only the ground-truth boxes that some frame of the capture "
+                        "shows (boxes.json's per-box \"visible\" record, written by "
+                        "parq-synth), as ScanNet's ground truth holds only what its scan saw")
     args = p.parse_args(argv)
     try:
-        truth, up = load_ground_truth(args.ground_truth)
+        truth, up = load_ground_truth(args.ground_truth, seen_only=args.seen_only)
         predictions = load_scene_boxes(args.predictions)
         metrics = evaluate([(predictions, truth, up)], classes_of(predictions, truth))
     except ParqError as e:

@@ -318,3 +318,37 @@ def test_parq_eval_cli(tmp_path):
     p.wait()
     p.stderr.close()
     assert "Traceback" not in stderr and "Error" not in stderr, stderr
+
+
+def test_parq_eval_seen_only_drops_the_boxes_no_frame_shows(tmp_path):
+    seen, unseen = box([0, 0, 0.5]).to_json(), box([3, 0, 0.5]).to_json()
+    seen["visible"] = {"frames": 4, "max_pixels": 900}
+    unseen["visible"] = {"frames": 0, "max_pixels": 0}
+    gt = {"format": "parq-onnx-boxes", "version": 1, "frame": "world", "up": [0, 0, 1],
+          "boxes": [seen, unseen]}
+    (tmp_path / "boxes.json").write_text(json.dumps(gt))
+    pred = {"schema": "parq-onnx/detections", "version": 1,
+            "scene": {"boxes": [box([0, 0, 0.5]).to_json(), box([3, 0.05, 0.5]).to_json(),
+                                box([6, 0, 0.5]).to_json()]}}
+    (tmp_path / "pred.json").write_text(json.dumps(pred))
+
+    def scores(*flags):
+        p = subprocess.run([sys.executable, "-m", "parq_runtime.evaluation",
+                            tmp_path / "pred.json", tmp_path / "boxes.json", "--json", *flags],
+                           capture_output=True, text=True)
+        assert p.returncode == 0, p.stderr
+        return json.loads(p.stdout)["0.25"]
+
+    every, shown = scores(), scores("--seen-only")
+    assert (every["tp"], every["predictions"], every["ground_truth"]) == (2, 3, 2)
+    # the box on the unseen object is a false positive, as against ScanNet's boxes
+    assert (shown["tp"], shown["predictions"], shown["ground_truth"]) == (1, 3, 1)
+    assert shown["recall"] == 1.0 and shown["precision"] == pytest.approx(1 / 3)
+
+    del unseen["visible"]
+    (tmp_path / "boxes.json").write_text(json.dumps(gt))
+    p = subprocess.run([sys.executable, "-m", "parq_runtime.evaluation", tmp_path / "pred.json",
+                        tmp_path / "boxes.json", "--seen-only"], capture_output=True, text=True)
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1 and "visible" in p.stderr, p.stderr
+    assert scores()["ground_truth"] == 2                    # without the flag, no record needed
