@@ -6,10 +6,11 @@ The authors fixed both for ScanNet (score > 0.8; centers with |x| < 1.5 m and z 
 snippet frame).  A model trained here scores on a different scale and sees different rooms,
 so the demo picks them on validation scenes (parq-synth seeds 2000 and 2001, never trained
 on, never used for the reported numbers; ``--data`` pools several folders): the candidate that
-maximises F1@0.25 + F1@0.5 at the run setting given (``--iters``, ``--queries``); ties go to
-the authors' fusion (best, support 1).  That setting is written to the card as the one
-parq-run uses when not told (``run``), so the default run is the one the post-processing was
-chosen for.
+maximises F1@0.25 + F1@0.5 at the run setting given (``--iters``, ``--queries``), or with
+``--min-f1-50 F`` the best F1@0.25 among the candidates whose F1@0.5 is at least F
+(:class:`Criterion`); ties go to the authors' fusion (best, support 1).  That setting is
+written to the card as the one parq-run uses when not told (``run``), so the default run is
+the one the post-processing was chosen for.
 
 Each validation snippet is run once with no threshold and no region; every candidate is
 then applied to those detections exactly as the runtime applies it (after NMS), and the scene
@@ -38,9 +39,11 @@ bottom within STANDING_TOLERANCE of the lowest box bottom), and classes are then
 at a time while that raises the criterion (backward elimination); off wins ties.  Each scene's
 floor is found as parq-run finds it, from its frames near the fused boxes' guess.
 
-Last, the label rule (parq_runtime.fusion ``labels``: a scene box reports its best detection's
+Then the label rule (parq_runtime.fusion ``labels``: a scene box reports its best detection's
 class, or the class its detections vote for) is chosen for all of that, the authors' rule
-winning ties.
+winning ties.  Last, the score threshold and the minimum support are chosen again, jointly,
+with all of that in place (:func:`select_keep`): the grid fixed them before the rest changed
+which boxes are right.
 
 Before all of this, a checkpoint's learned queries are ranked (``query_order``, see
 parq_runtime.queries; a model folder keeps its own ranking): one pass with all of them, each
@@ -60,6 +63,7 @@ way when the folder's order is what tuning its checkpoint ranked.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import multiprocessing as mp
 import os
@@ -71,7 +75,7 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from parq_runtime import evaluation, floor, geometry, readers, scene
-from parq_runtime.arguments import OneLineParser, positive_int
+from parq_runtime.arguments import OneLineParser, fraction, positive_int
 from parq_runtime.errors import ParqError
 from parq_runtime.fusion import (AUTHORS_LABELS, AUTHORS_MIN_SUPPORT, AUTHORS_MODE,
                                  FLOOR_WEIGHT, LABEL_RULES, RAY_RATIO, SceneFusion)
@@ -100,6 +104,31 @@ CHOSEN = ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio"
 SCENE_NMS = (None, 0.0, 0.05, 0.1, 0.2, 0.3)   # None: off, the authors' protocol
 FLOOR_WEIGHTS = (FLOOR_WEIGHT, 10.0)           # the first is the runtime's default
 STANDING_SHARE, STANDING_TOLERANCE = 0.9, 0.02  # a floor class: 90% of its boxes within 2 cm
+
+
+@dataclasses.dataclass(frozen=True)
+class Criterion:
+    """How the candidates are ranked.  ``min_f1_50`` None: by F1@0.25 + F1@0.5 (then
+    F1@0.5), the demo's first criterion.  A number: by F1@0.25 (then F1@0.5) among the
+    candidates whose F1@0.5 is at least that, every one of which ranks above every candidate
+    below it (those by the sum): the issue's goal is a floor at IoU 0.5 and a level at 0.25,
+    so the validation scenes choose the best F1@0.25 that keeps IoU 0.5 clear of its floor."""
+    min_f1_50: float | None = None
+
+    def key(self, row: dict) -> tuple:
+        total = row["f1@0.25"] + row["f1@0.5"]
+        if self.min_f1_50 is None:
+            return (total, row["f1@0.5"])
+        clear = row["f1@0.5"] >= self.min_f1_50
+        return (clear, row["f1@0.25"] if clear else total, row["f1@0.5"])
+
+    def describe(self) -> str:
+        if self.min_f1_50 is None:
+            return "max F1@0.25 + F1@0.5"
+        return f"max F1@0.25 with F1@0.5 >= {self.min_f1_50:g}"
+
+
+SUM = Criterion()
 
 
 def run_once(detector, folders, iters: int, queries: int, stride: int | None = None,
@@ -193,12 +222,13 @@ def fuse_records(records: list, threshold: float, region, fusion: str,
 
 
 def select(records: list, classes, thresholds=THRESHOLDS, regions=REGIONS,
-           fusions=FUSIONS, mirror: bool = False, jobs: int = 1) -> tuple:
-    """(the best candidate's row, table of every candidate's settings and F1s), candidates in
-    the order fusion, region, threshold.  A row holds score_threshold, eval_region, fusion,
-    min_support, ray_ratio and f1@0.25, f1@0.5, f1@0.7.  ``mirror``: the records hold mirror
-    runs (run_once).  Candidates that differ only in support share one fusion; ``jobs``
-    processes share the rest (the table is the same for any number)."""
+           fusions=FUSIONS, mirror: bool = False, jobs: int = 1,
+           criterion: Criterion = SUM) -> tuple:
+    """(the best candidate's row by ``criterion``, table of every candidate's settings and
+    F1s), candidates in the order fusion, region, threshold.  A row holds score_threshold,
+    eval_region, fusion, min_support, ray_ratio and f1@0.25, f1@0.5, f1@0.7.  ``mirror``: the
+    records hold mirror runs (run_once).  Candidates that differ only in support share one
+    fusion; ``jobs`` processes share the rest (the table is the same for any number)."""
     supports = {}
     for mode, support, ratio in fusions:
         supports.setdefault((mode, ratio), []).append(support)
@@ -209,7 +239,7 @@ def select(records: list, classes, thresholds=THRESHOLDS, regions=REGIONS,
              for rows in _map(_candidates, tasks, records, classes, mirror, jobs) for row in rows}
     table = [found[_key(mode, support, ratio, region, t)]
              for mode, support, ratio in fusions for region in regions for t in thresholds]
-    return best_of(table), table
+    return best_of(table, criterion), table
 
 
 def _key(fusion: str, min_support: int, ray_ratio: float, region, threshold) -> tuple:
@@ -262,13 +292,13 @@ def row_of(threshold: float, region, fusion: str, min_support: int, ray_ratio: f
 
 
 def select_scene_nms(records: list, classes, best: dict, mirror: bool = False,
-                     choices=SCENE_NMS) -> tuple:
+                     choices=SCENE_NMS, criterion: Criterion = SUM) -> tuple:
     """(the best of ``best`` with each scene NMS of ``choices``, their rows), by
-    :func:`best_of`: the first choice (off) wins ties."""
+    :func:`best_of` with ``criterion``: the first choice (off) wins ties."""
     keys = CHOSEN[:CHOSEN.index("scene_nms")]         # candidate()'s order
     rows = [candidate(records, classes, *(best[k] for k in keys), mirror, nms)
             for nms in choices]
-    return best_of(rows), rows
+    return best_of(rows, criterion), rows
 
 
 def standing_classes(records: list, classes) -> list:
@@ -289,12 +319,13 @@ def standing_classes(records: list, classes) -> list:
     return [c for c in classes if seen.get(c) and standing[c] >= STANDING_SHARE * seen[c]]
 
 
-def select_floor(records: list, classes, best: dict, sweep, mirror: bool = False) -> tuple:
+def select_floor(records: list, classes, best: dict, sweep, mirror: bool = False,
+                 criterion: Criterion = SUM) -> tuple:
     """(``best`` with the floor prior chosen, the rows tried): off, then the standing classes
     at each of FLOOR_WEIGHTS, then backward elimination of classes at the better weight, by
-    :func:`best_of` (off, and the larger set, win ties).  ``sweep(scene, guess)``: the floor
-    candidates of the ``scene``-th scene of ``records`` near ``guess`` (floor.candidates);
-    a floor is chosen from them as parq-run chooses it."""
+    :func:`best_of` with ``criterion`` (off, and the larger set, win ties).
+    ``sweep(scene, guess)``: the floor candidates of the ``scene``-th scene of ``records``
+    near ``guess`` (floor.candidates); a floor is chosen from them as parq-run chooses it."""
     fused = fuse_records(records, best["score_threshold"], best["eval_region"], best["fusion"],
                          best["ray_ratio"], mirror, best["scene_nms"])
 
@@ -309,16 +340,16 @@ def select_floor(records: list, classes, best: dict, sweep, mirror: bool = False
     if not chosen or best["fusion"] != "ray":
         return rows[0], rows
     rows += [row(chosen, w) for w in FLOOR_WEIGHTS]
-    current = best_of(rows[1:])
+    current = best_of(rows[1:], criterion)
     weight = current["floor_weight"]
     while len(chosen) > 1:
         tried = [row([c for c in chosen if c != drop], weight) for drop in chosen]
         rows += tried
-        better = best_of([current] + tried)
+        better = best_of([current] + tried, criterion)
         if better is current:
             break
         current, chosen = better, better["floor_classes"]
-    return best_of([rows[0], current]), rows
+    return best_of([rows[0], current], criterion), rows
 
 
 def floor_pairs(fused: list, min_support: int, floor_classes, weight: float, sweep) -> list:
@@ -336,10 +367,11 @@ def floor_pairs(fused: list, min_support: int, floor_classes, weight: float, swe
     return pairs
 
 
-def select_labels(records: list, classes, best: dict, sweep, mirror: bool = False) -> tuple:
-    """(``best`` with the label rule chosen, the rows tried): ``best`` itself, scored with the
-    authors' rule (which wins ties; parq_runtime.fusion), then each other rule of LABEL_RULES
-    with everything else ``best``'s, floor prior included."""
+def select_labels(records: list, classes, best: dict, sweep, mirror: bool = False,
+                  criterion: Criterion = SUM) -> tuple:
+    """(``best`` with the label rule chosen by ``criterion``, the rows tried): ``best``
+    itself, scored with the authors' rule (which wins ties; parq_runtime.fusion), then each
+    other rule of LABEL_RULES with everything else ``best``'s, floor prior included."""
     rows = [best]
     for labels in LABEL_RULES:
         if labels == best["labels"]:
@@ -353,13 +385,37 @@ def select_labels(records: list, classes, best: dict, sweep, mirror: bool = Fals
                            best["min_support"], best["ray_ratio"],
                            evaluation.evaluate(pairs, classes), best["scene_nms"],
                            best["floor_classes"], best["floor_weight"], labels))
-    return best_of(rows), rows
+    return best_of(rows, criterion), rows
 
 
-def best_of(table: list) -> dict:
-    """The row with the highest F1@0.25 + F1@0.5 (then F1@0.5); max() keeps the first of
-    equals, so in :func:`select`'s table the authors' fusion wins ties."""
-    return max(table, key=lambda r: (r["f1@0.25"] + r["f1@0.5"], r["f1@0.5"]))
+def select_keep(records: list, classes, best: dict, sweep, mirror: bool = False,
+                criterion: Criterion = SUM) -> tuple:
+    """(``best`` with the score threshold and minimum support chosen again, jointly, by
+    ``criterion``, the rows tried): every threshold of THRESHOLDS with every support the
+    grid allows (1-4 with mirror runs, else 1-2), everything else ``best``'s, scene NMS,
+    floor prior and label rule included; ``best`` wins ties.  The grid chose both before the
+    NMS, the floor and the vote changed which boxes are right, and they trade precision for
+    recall together; this pass lets them move with what came after (the demo's card:
+    support 4 -> 3 at threshold 0.8, docs/demo-experiments.md)."""
+    supports = range(1, 5 if mirror else 3)
+    rows = []
+    for threshold in THRESHOLDS:
+        fused = fuse_records(records, threshold, best["eval_region"], best["fusion"],
+                             best["ray_ratio"], mirror, best["scene_nms"], best["labels"])
+        for support in supports:
+            pairs = floor_pairs(fused, support, best["floor_classes"], best["floor_weight"],
+                                sweep)
+            rows.append(row_of(float(threshold), best["eval_region"], best["fusion"], support,
+                               best["ray_ratio"], evaluation.evaluate(pairs, classes),
+                               best["scene_nms"], best["floor_classes"], best["floor_weight"],
+                               best["labels"]))
+    return best_of([best] + rows, criterion), rows
+
+
+def best_of(table: list, criterion: Criterion = SUM) -> dict:
+    """The best row of ``table`` by ``criterion``; max() keeps the first of equals, so in
+    :func:`select`'s table the authors' fusion wins ties."""
+    return max(table, key=criterion.key)
 
 
 def main(argv=None) -> int:
@@ -381,6 +437,10 @@ def main(argv=None) -> int:
                    help="choose the post-processing for runs that add each snippet's mirror "
                         "image (parq-run --mirror; supports up to 4 runs); the card records "
                         "mirror runs as parq-run's default")
+    p.add_argument("--min-f1-50", type=fraction, default=None, metavar="F",
+                   help="choose the candidate with the best F1@0.25 among those whose F1@0.5 "
+                        "on the validation scenes is at least F (default: the best F1@0.25 + "
+                        "F1@0.5)")
     p.add_argument("--jobs", type=positive_int, default=os.cpu_count() or 1,
                    help="processes that score the candidates (default: one per core; the "
                         "choice is the same for any number)")
@@ -395,6 +455,11 @@ def main(argv=None) -> int:
         return 2
 
 
+def criterion_of(args) -> Criterion:
+    """The :class:`Criterion` that ``args`` (main's) ask for."""
+    return Criterion(getattr(args, "min_f1_50", None))
+
+
 def record_of(args, folders, best, table, ranking) -> dict:
     """What the card's ``extra.postprocess_tuning`` says about a tuning run."""
     authors = next(r for r in table if all(r[k] == v for k, v in AUTHORS.items()))
@@ -402,22 +467,24 @@ def record_of(args, folders, best, table, ranking) -> dict:
                     if (f / "scene.json").exists()})
     return {"data": [str(d) for d in args.data], "seeds": seeds, "scenes": len(folders),
             "iters": args.iters, "queries": args.queries, "mirror": args.mirror,
-            "criterion": "max F1@0.25 + F1@0.5",
+            "criterion": criterion_of(args).describe(),
             "chosen": best, "authors_settings": authors, "query_ranking": ranking}
 
 
 def choose(records: list, classes, args, folders: list) -> tuple:
     """:func:`select` over the grid for the run setting of ``args`` (with or without mirror
     runs), then :func:`select_scene_nms` for its best, then :func:`select_floor` with the
-    floors of the scenes ``folders``, then :func:`select_labels`; the table ends with the NMS
-    rows, then the floor's, then the label rules'."""
+    floors of the scenes ``folders``, then :func:`select_labels`, then :func:`select_keep`;
+    the table ends with the NMS rows, then the floor's, the label rules' and the last pass's."""
+    criterion = criterion_of(args)
     best, table = select(records, classes, fusions=MIRROR_FUSIONS if args.mirror else FUSIONS,
-                         mirror=args.mirror, jobs=args.jobs)
-    best, rows = select_scene_nms(records, classes, best, args.mirror)
+                         mirror=args.mirror, jobs=args.jobs, criterion=criterion)
+    best, rows = select_scene_nms(records, classes, best, args.mirror, criterion=criterion)
     sweep = floor_sweep(folders)
-    best, floor_rows = select_floor(records, classes, best, sweep, args.mirror)
-    best, label_rows = select_labels(records, classes, best, sweep, args.mirror)
-    return best, table + rows + floor_rows + label_rows
+    best, floor_rows = select_floor(records, classes, best, sweep, args.mirror, criterion)
+    best, label_rows = select_labels(records, classes, best, sweep, args.mirror, criterion)
+    best, keep_rows = select_keep(records, classes, best, sweep, args.mirror, criterion)
+    return best, table + rows + floor_rows + label_rows + keep_rows
 
 
 def floor_sweep(folders: list):

@@ -106,6 +106,24 @@ def test_tune_picks_the_threshold_and_region_that_separate_true_from_false_boxes
     assert everything["f1@0.25"] == 0.5     # 1 of 3 predictions right, the one box found
 
 
+def test_tune_criterion_keeps_iou_50_above_its_floor_then_maximises_iou_25():
+    """The sum picks the row with the best F1@0.25 + F1@0.5; with a floor at IoU 0.5 the best
+    F1@0.25 among the rows at or above the floor wins, whatever the sum says; with no row at
+    or above the floor, the sum decides.  Equal keys keep the first row (the authors')."""
+    from parq_train import tune
+
+    rows = [{"name": "precise", "f1@0.25": 0.58, "f1@0.5": 0.41},
+            {"name": "reaching", "f1@0.25": 0.61, "f1@0.5": 0.36},
+            {"name": "loose", "f1@0.25": 0.63, "f1@0.5": 0.29},
+            {"name": "reaching twin", "f1@0.25": 0.61, "f1@0.5": 0.36}]
+    assert tune.best_of(rows)["name"] == "precise"                       # 0.99 > 0.97 > 0.92
+    assert tune.best_of(rows, tune.Criterion(0.35))["name"] == "reaching"
+    assert tune.best_of(rows, tune.Criterion(0.25))["name"] == "loose"
+    assert tune.best_of(rows, tune.Criterion(0.5))["name"] == "precise"  # none clear: the sum
+    assert tune.Criterion(0.35).describe() == "max F1@0.25 with F1@0.5 >= 0.35"
+    assert tune.SUM.describe() == "max F1@0.25 + F1@0.5"
+
+
 def test_tune_turns_the_floor_on_when_it_helps_and_knows_which_classes_stand():
     """A chair (center 0.4 m up, 0.8 m tall) seen from a camera at eye height in two snippets,
     both times 0.4 m too far along the viewing ray: the ray fusion cannot fix that (F1 0), a
@@ -140,6 +158,35 @@ def test_tune_turns_the_floor_on_when_it_helps_and_knows_which_classes_stand():
     on_table = [box([1.0, 1.0, 0.95], "display", size=(0.5, 0.5, 0.1)), box([1.0, 1.0, 0.4])]
     assert tune.standing_classes([([], on_table, (0.0, 0.0, 1.0))] + records,
                                  ["chair", "display"]) == ["chair"]
+
+
+def test_tune_last_pass_moves_threshold_and_support_together_and_keeps_best_on_ties():
+    """Chair A is found by two snippets, chair B by one, and a false chair (score 0.55) by
+    one: at support 2 only A is reported (F1 2/3); support 1 reports B too, and above 0.55
+    nothing false (F1 1), so the last pass picks support 1 at the first threshold that
+    drops the false box.  With chair A alone every row ties the given choice, which stays."""
+    from parq_runtime.boxes import Box
+    from parq_runtime.geometry import box_corners
+    from parq_train import tune
+
+    def box(x, score):
+        c, s, R = np.array([x, 0.0, 1.0]), np.array([0.5, 0.8, 0.5]), np.eye(3)
+        return Box(c, s, R, 0.0, 0, "chair", score, box_corners(c, s, R)), c
+
+    up, a, b, false = (0.0, 0.0, 1.0), box(0.0, 0.9), box(3.0, 0.9), box(6.0, 0.55)
+    records = [([[a, b], [a], [false]], [a[0], b[0]], up)]
+    best, _ = tune.select(records, ["chair"], thresholds=(0.5,), regions=tune.REGIONS[-1:],
+                          fusions=(("ray", 2, 30.0),))
+    assert (best["min_support"], best["f1@0.25"]) == (2, 0.6667)
+    chosen, rows = tune.select_keep(records, ["chair"], best, sweep=None)
+    assert len(rows) == len(tune.THRESHOLDS) * 2                      # supports 1 and 2
+    assert (chosen["score_threshold"], chosen["min_support"], chosen["f1@0.25"]) == \
+        (0.55, 1, 1.0)
+    assert chosen["fusion"] == "ray" and chosen["ray_ratio"] == 30.0
+    alone = [([[a], [a]], [a[0]], up)]
+    best, _ = tune.select(alone, ["chair"], thresholds=(0.5,), regions=tune.REGIONS[-1:],
+                          fusions=(("ray", 2, 30.0),))
+    assert tune.select_keep(alone, ["chair"], best, sweep=None)[0] is best
 
 
 def test_tune_chooses_scene_nms_after_the_grid_and_off_on_ties():
@@ -498,10 +545,12 @@ def test_tune_a_model_folder_writes_a_new_folder_with_the_choice(tiny_model, tmp
     assert tune.main([str(tiny_model), "--data", str(tmp_path / "val"), "-o", str(out)]) == 2
     mirrored = tmp_path / "tuned-mirror"
     assert tune.main([str(tiny_model), "--data", str(tmp_path / "val"), "-o", str(mirrored),
-                      "--queries", "8", "--mirror", "--jobs", "2"]) == 0
+                      "--queries", "8", "--mirror", "--jobs", "2", "--min-f1-50", "0.2"]) == 0
     card = model_card.load(mirrored)
     assert card.raw["run"] == {"iters": 2, "queries": 8, "mirror": True}
-    assert card.raw["extra"]["postprocess_tuning"]["mirror"] is True
+    record = card.raw["extra"]["postprocess_tuning"]
+    assert record["mirror"] is True
+    assert record["criterion"] == "max F1@0.25 with F1@0.5 >= 0.2"
 
 
 def test_tune_pools_several_validation_folders(tmp_path):
