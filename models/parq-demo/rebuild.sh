@@ -19,7 +19,7 @@ parq-export work/demo-ranked.pt -o work/parq-demo-ranked --force
 # is at least 0.35 (a floor set before the run: docs/demo-experiments.md, "Chosen for the
 # goal"): ray fusion, ratio 30, then scene NMS 0.1, then the floor prior for chairs, tables,
 # trash bins, bookshelves and bathtubs at weight 3, then labels by vote, then threshold 0.8
-# and support 3 runs chosen again together, for these weights (about 40 minutes on a 2-core
+# and support 3 runs chosen again together, for these weights (33 minutes on a 2-core
 # EPYC); the tuning of a model folder keeps its query ranking and writes a new folder
 rm -rf work/parq-demo
 python -m parq_train.tune work/parq-demo-ranked --data data/val data/val2 --queries 64 --mirror \
