@@ -115,15 +115,18 @@ def test_parq_run_mirror_fuses_both_runs_and_counts_them_as_support(tmp_path):
     assert cli.main([sample, "-q", "--no-mirror", "-o", str(plain)]) == 0
     assert cli.main([sample, "-q", "--mirror", "-o", str(mirrored)]) == 0
     a, b = (json.loads(p.read_text()) for p in (plain, mirrored))
-    card_support = a["settings"]["min_support"]
+    # support counts runs: the demo card's (chosen with mirror runs) is the mirrored run's,
+    # and a plain run, one run a snippet, asks half of it, rounded up
+    card_support = json.loads((DEMO / "model.json").read_text())["postprocess"]["min_support"]
     assert a["settings"]["mirror"] is False and "mirrored_boxes" not in a["snippets"][0]
     assert b["settings"]["mirror"] is True
-    assert b["settings"]["min_support"] == 2 * card_support         # support counts runs
+    assert b["settings"]["min_support"] == card_support
+    assert a["settings"]["min_support"] == -(-card_support // 2)
     # the unmirrored runs are the plain run, box for box
     assert [s["boxes"] for s in b["snippets"]] == [s["boxes"] for s in a["snippets"]]
     assert sum(len(s["mirrored_boxes"]) for s in b["snippets"]) > 0
     supports = [box["support"] for box in b["scene"]["boxes"]]
-    assert supports and min(supports) >= 2 * card_support
+    assert supports and min(supports) >= card_support
     assert max(supports) <= 2 * len(b["snippets"])
     assert max(supports) > max(box["support"] for box in a["scene"]["boxes"])
     # the demo card's run setting has mirror runs: no flag is --mirror
