@@ -8,7 +8,7 @@ import pathlib
 import numpy as np
 import pytest
 
-from parq_runtime import Detector, geometry, mirror, readers, scene
+from parq_runtime import Detector, geometry, mirror, model_card, readers, scene
 from parq_runtime.boxes import Box
 
 DEMO = pathlib.Path(__file__).resolve().parents[1] / "models" / "parq-demo"
@@ -117,7 +117,7 @@ def test_parq_run_mirror_fuses_both_runs_and_counts_them_as_support(tmp_path):
     a, b = (json.loads(p.read_text()) for p in (plain, mirrored))
     # support counts runs: the demo card's (chosen with mirror runs) is the mirrored run's,
     # and a plain run, one run a snippet, asks half of it, rounded up
-    card_support = json.loads((DEMO / "model.json").read_text())["postprocess"]["min_support"]
+    card_support = model_card.load(DEMO).min_support
     assert a["settings"]["mirror"] is False and "mirrored_boxes" not in a["snippets"][0]
     assert b["settings"]["mirror"] is True
     assert b["settings"]["min_support"] == card_support
