@@ -105,7 +105,7 @@ def min_support(settings: RunSettings, card) -> int:
     """The fusion's minimum support: the settings', else the card's scaled to the runs a
     snippet gets, since support counts runs (two a snippet with mirror runs) and the card's
     counts them at its own run setting.  A card chosen without mirror runs asks twice its
-    support of a mirror run; one chosen with them (the demo: 4) half of it, rounded up (2),
+    support of a mirror run; one chosen with them (the demo: 3) half of it, rounded up (2),
     of a run without."""
     if settings.min_support is not None:
         return settings.min_support
