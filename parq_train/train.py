@@ -21,7 +21,7 @@ from torch import nn
 from parq_export.backbone import FrozenBatchNorm2d
 from parq_export.model import PARQ
 
-from . import denoise, resume
+from . import denoise, mirror as mirror_augment, resume
 from .loss import total_loss
 from .progress import minutes
 
@@ -102,7 +102,7 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
           model: PARQ | None = None, snapshot=None, snapshot_every: int = 0,
           backbone_lr: float = 1.0, form: str = "cached", bf16: bool = False,
           denoise_scale: float = 0.0, denoise_class_weight: float = 1.0,
-          state: dict | None = None, save_state=None) -> tuple:
+          mirror: bool = False, state: dict | None = None, save_state=None) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
 
@@ -116,7 +116,9 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     with AMX it is faster (see ``parq-train --bf16``); elsewhere it is emulated and slower.
     ``denoise_scale`` above 0 adds a denoising query per target, its center moved by up to
     that many half extents (:mod:`parq_train.denoise`; beyond the paper's objective); 0 trains
-    exactly as before.  ``denoise_class_weight`` scales their class loss.
+    exactly as before.  ``denoise_class_weight`` scales their class loss.  ``mirror`` replaces
+    each snippet of a batch by its mirror image with probability 1/2
+    (:mod:`parq_train.mirror`); off, nothing is drawn for it, so training is as before.
 
     ``save_state(state)``, if given, is called at the snapshots' steps with the whole state of
     the run (:func:`parq_train.resume.capture`); ``state`` is such a state to continue from,
@@ -144,6 +146,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
             order += list(rng.permutation(len(snippets)))
         batch = [snippets[i] for i in order[:batch_size]]
         del order[:batch_size]
+        if mirror:
+            batch = mirror_augment.mirror_some(batch, rng, config.feature_stride)
         for group in optimizer.param_groups:
             group["lr"] = group["scale"] * learning_rate(step, steps, lr,
                                                          warmup=min(500, steps // 10))
