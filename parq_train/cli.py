@@ -107,6 +107,13 @@ def parser() -> argparse.ArgumentParser:
                         "reflected; parq_train.mirror), twice the rooms for no extra time; "
                         "pretraining is unchanged. Off by default, so that the default command "
                         "rebuilds the shipped demo bit for bit")
+    p.add_argument("--dense-weight", type=non_negative_float, default=0.0, metavar="W",
+                   help="add the pretraining's dense targets (per feature cell: log-depth and "
+                        "the class seen there) as an auxiliary loss on the backbone's "
+                        "features, through a linear probe dropped after training, times W "
+                        "(beyond the paper's objective, training only: the exported graphs "
+                        "are the same; parq_train.dense). Default 0: none, the paper's "
+                        "objective alone")
     p.add_argument("--snapshot-every", type=non_negative_int, default=2000,
                    help="also write OUTPUT's stem + '-stepN.pt' every N training steps, and "
                         "the run's whole state to OUTPUT's stem + '-state.pt' for --resume "
@@ -155,7 +162,7 @@ def run(args, argv) -> int:
     folders = data.training_scenes(args.data, args.scenes, TRAIN_SEED, args.frames,
                                    config.image_size, jobs=args.jobs, log=log)
     generated = time.perf_counter() - start
-    snippets = data.load_scenes(folders, config, log=log)
+    snippets = data.load_scenes(folders, config, log=log, dense=args.dense_weight > 0)
     model = train.new_model(config, args.seed, snippets)
     pre_history, pre_record = [], {"steps": 0}
     if state is not None:
@@ -201,7 +208,8 @@ def run(args, argv) -> int:
                                  backbone_lr=args.backbone_lr, form=form, bf16=args.bf16,
                                  denoise_scale=args.denoise,
                                  denoise_class_weight=args.denoise_class_weight,
-                                 mirror=args.mirror, state=state, save_state=save_state)
+                                 mirror=args.mirror, dense_weight=args.dense_weight,
+                                 state=state, save_state=save_state)
     trained = time.perf_counter() - start - generated - pretrained
     if state is not None:
         trained += state["seconds"]
@@ -214,7 +222,8 @@ def run(args, argv) -> int:
               "iterations": args.iterations, "gap": args.gap, "lr": args.lr,
               "backbone_lr": args.backbone_lr, "denoise": args.denoise,
               "denoise_class_weight": args.denoise_class_weight,
-              "mirror_augment": args.mirror, "attention": form,
+              "mirror_augment": args.mirror, "dense_weight": args.dense_weight,
+              "attention": form,
               "precision": "bfloat16 autocast" if args.bf16 else "float32",
               "threads": torch.get_num_threads(),
               "minutes": dict(earlier["minutes"], train=round(trained / 60, 1)),
@@ -241,7 +250,9 @@ def recipe_of(args) -> dict:
             "iterations": args.iterations, "lr": args.lr, "backbone_lr": args.backbone_lr,
             "fused_attention": args.fused_attention, "bf16": args.bf16,
             "denoise": args.denoise, "denoise_class_weight": args.denoise_class_weight,
-            "mirror": args.mirror}
+            "mirror": args.mirror,
+            # only when set, so that the states of runs from before the flag still resume
+            **({"dense_weight": args.dense_weight} if args.dense_weight else {})}
 
 
 def now() -> str:

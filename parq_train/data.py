@@ -22,6 +22,7 @@ from parq_runtime import geometry, keyframes, preprocess
 from parq_runtime.errors import ParqError
 from parq_runtime.readers import open_capture
 
+from .dense import class_lookup, dense_targets
 from .progress import minutes
 
 
@@ -29,7 +30,9 @@ from .progress import minutes
 class Snippet:
     """images (N, h, w, 3) uint8; camera (N, 4) feature-resolution pinholes; T_local_camera
     (N, 4, 4); targets in the local frame: labels (M,), centers (M, 3), sizes (M, 3),
-    rotations (M, 3, 3) = R_local_object."""
+    rotations (M, 3, 3) = R_local_object; with ``dense`` loading, per view and feature cell
+    dense_depth (N, h, w) float32 log-depth (NaN: none) and dense_labels (N, h, w) uint8 (the
+    class seen there, len(classes) the room): :mod:`parq_train.dense`'s targets."""
 
     scene: str
     images: np.ndarray
@@ -39,6 +42,8 @@ class Snippet:
     centers: np.ndarray
     sizes: np.ndarray
     rotations: np.ndarray
+    dense_depth: np.ndarray | None = None
+    dense_labels: np.ndarray | None = None
 
 
 def read_boxes(path) -> list:
@@ -53,9 +58,10 @@ def _inside(points, scale) -> np.ndarray:
     return np.all((points > lo) & (points < hi), -1)
 
 
-def scene_snippets(folder, config, views: int = 3, stride: int = 1) -> list:
+def scene_snippets(folder, config, views: int = 3, stride: int = 1, dense: bool = False) -> list:
     """Snippets of one generated scene for a model with ``config`` (PARQConfig): windows of
-    ``views`` keyframes ``config.snippet_gap`` apart, starting every ``stride`` keyframes."""
+    ``views`` keyframes ``config.snippet_gap`` apart, starting every ``stride`` keyframes;
+    ``dense``: with each view's dense targets (from its depth map and instance mask)."""
     folder = pathlib.Path(folder)
     capture = open_capture(folder, "scannet")
     boxes = read_boxes(folder / "boxes.json")
@@ -64,6 +70,7 @@ def scene_snippets(folder, config, views: int = 3, stride: int = 1) -> list:
     sizes = np.array([b["size"] for b in boxes], dtype=np.float64).reshape(-1, 3)
     R_world_object = np.array([b["rotation"] for b in boxes], dtype=np.float64).reshape(-1, 3, 3)
     keys = keyframes.select([f.cam_to_world for f in capture.frames])
+    lut = class_lookup(boxes, len(config.classes))
     out = []
     cache = {}
     for window in keyframes.windows(keys, views, stride, config.snippet_gap):
@@ -74,10 +81,14 @@ def scene_snippets(folder, config, views: int = 3, stride: int = 1) -> list:
                 image, K = preprocess.prepare(f.load_image(), f.intrinsics, config.image_size)
                 depth_path = folder / "depth" / f"{f.name}.png"
                 depth = np.asarray(Image.open(depth_path), dtype=np.float64) / 1000.0
-                cache[f.name] = (image, K, depth, f.intrinsics)
+                targets = None
+                if dense:
+                    mask = np.asarray(Image.open(folder / "instance" / f"{f.name}.png"), np.int64)
+                    targets = dense_targets(depth, mask, lut, config.feature_size)
+                cache[f.name] = (image, K, depth, f.intrinsics, targets)
             images.append(cache[f.name][0])
             K_net.append(cache[f.name][1])
-            depths.append(cache[f.name][2:])
+            depths.append(cache[f.name][2:4])
         T_world_camera = np.stack([f.cam_to_world for f in frames])
         T_world_local = geometry.snippet_frame(T_world_camera)
         T_local_world = geometry.invert(T_world_local)
@@ -92,6 +103,10 @@ def scene_snippets(folder, config, views: int = 3, stride: int = 1) -> list:
             T_local_camera.astype(np.float32), labels[seen],
             centers_local[seen].astype(np.float32), sizes[seen].astype(np.float32),
             (T_local_world[:3, :3] @ R_world_object[seen]).astype(np.float32)))
+        if dense:
+            targets = [cache[f.name][4] for f in frames]
+            out[-1].dense_depth = np.stack([t[0] for t in targets]).astype(np.float32)
+            out[-1].dense_labels = np.stack([t[1] for t in targets]).astype(np.uint8)
     return out
 
 
@@ -151,11 +166,13 @@ def training_scenes(root, scenes: int, seed: int, frames: int, size, jobs: int =
     return folders
 
 
-def load_scenes(folders: list, config, views: int = 3, stride: int = 1, log=print) -> list:
-    """Snippets of every scene folder (from :func:`training_scenes`)."""
+def load_scenes(folders: list, config, views: int = 3, stride: int = 1, log=print,
+                dense: bool = False) -> list:
+    """Snippets of every scene folder (from :func:`training_scenes`); ``dense``: with their
+    dense targets (:func:`scene_snippets`)."""
     snippets = []
     for folder in folders:
-        snippets += scene_snippets(folder, config, views, stride)
+        snippets += scene_snippets(folder, config, views, stride, dense)
     log(f"{len(snippets)} snippets from {len(folders)} scenes, "
         f"{sum(len(s.labels) for s in snippets)} targets")
     return snippets

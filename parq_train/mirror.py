@@ -41,7 +41,14 @@ def mirrored(snippet: Snippet, feature_stride: int) -> Snippet:
                    images=np.ascontiguousarray(snippet.images[:, :, ::-1]),
                    camera=camera, T_local_camera=T,
                    centers=(snippet.centers * F_FLIP.diagonal()).astype(np.float32),
-                   rotations=(F_FLIP @ snippet.rotations @ F_FLIP).astype(np.float32))
+                   rotations=(F_FLIP @ snippet.rotations @ F_FLIP).astype(np.float32),
+                   dense_depth=_flip(snippet.dense_depth),
+                   dense_labels=_flip(snippet.dense_labels))
+
+
+def _flip(maps):
+    """Per-view maps (N, h, w) flipped left-right with the images; None stays None."""
+    return None if maps is None else np.ascontiguousarray(maps[:, :, ::-1])
 
 
 def mirror_some(snippets: list, rng: np.random.Generator, feature_stride: int) -> list:

@@ -21,6 +21,7 @@ from torch import nn
 from parq_runtime import keyframes, preprocess
 from parq_runtime.readers import open_capture
 
+from .dense import class_lookup, dense_targets
 from .progress import minutes
 
 
@@ -45,22 +46,17 @@ def frame_targets(folder, config, stride: int = 4) -> tuple:
     folder = pathlib.Path(folder)
     capture = open_capture(folder, "scannet")
     boxes = json.loads((folder / "boxes.json").read_text())["boxes"]
-    room = len(config.classes)
-    lut = np.array([room] + [b["label"] for b in boxes], dtype=np.int64)
+    lut = class_lookup(boxes, len(config.classes))
     images, depths, labels = [], [], []
     for i in keyframes.select([f.cam_to_world for f in capture.frames]):
         f = capture.frames[i]
         image, _ = preprocess.prepare(f.load_image(), f.intrinsics, config.image_size)
         depth = np.asarray(Image.open(folder / "depth" / f"{f.name}.png"), np.float64) / 1000
         mask = np.asarray(Image.open(folder / "instance" / f"{f.name}.png"), np.int64)
-        h, w = depth.shape
-        fw, fh = config.feature_size
-        ys = np.clip(((np.arange(fh) + 0.5) * h / fh).astype(int), 0, h - 1)
-        xs = np.clip(((np.arange(fw) + 0.5) * w / fw).astype(int), 0, w - 1)
-        d = depth[np.ix_(ys, xs)]
+        log_depth, label = dense_targets(depth, mask, lut, config.feature_size)
         images.append(image)
-        depths.append(np.where(d > 0, np.log(np.maximum(d, 1e-3)), np.nan))
-        labels.append(lut[np.clip(mask[np.ix_(ys, xs)], 0, len(lut) - 1)])
+        depths.append(log_depth)
+        labels.append(label)
     return np.stack(images), np.stack(depths).astype(np.float32), np.stack(labels)
 
 

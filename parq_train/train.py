@@ -21,7 +21,7 @@ from torch import nn
 from parq_export.backbone import FrozenBatchNorm2d
 from parq_export.model import PARQ
 
-from . import denoise, mirror as mirror_augment, resume
+from . import dense, denoise, mirror as mirror_augment, resume
 from .loss import total_loss
 from .progress import minutes
 
@@ -102,7 +102,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
           model: PARQ | None = None, snapshot=None, snapshot_every: int = 0,
           backbone_lr: float = 1.0, form: str = "cached", bf16: bool = False,
           denoise_scale: float = 0.0, denoise_class_weight: float = 1.0,
-          mirror: bool = False, state: dict | None = None, save_state=None) -> tuple:
+          mirror: bool = False, dense_weight: float = 0.0, state: dict | None = None,
+          save_state=None) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
 
@@ -119,6 +120,10 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     exactly as before.  ``denoise_class_weight`` scales their class loss.  ``mirror`` replaces
     each snippet of a batch by its mirror image with probability 1/2
     (:mod:`parq_train.mirror`); off, nothing is drawn for it, so training is as before.
+    ``dense_weight`` above 0 adds :mod:`parq_train.dense`'s auxiliary loss on the backbone's
+    features times that weight (the snippets need their dense targets: ``load_scenes(...,
+    dense=True)``); its probe trains with the model and is dropped at the end; 0 trains
+    exactly as before.
 
     ``save_state(state)``, if given, is called at the snapshots' steps with the whole state of
     the run (:func:`parq_train.resume.capture`); ``state`` is such a state to continue from,
@@ -129,8 +134,17 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     if model is None:
         model = new_model(config, seed, snippets)
     model.train()
+    probe, captured, hook = None, {}, None
+    if dense_weight > 0:
+        probe = dense.DenseProbe(config.feature_dim, len(config.classes))
+        hook = model.backbone.register_forward_hook(
+            lambda module, inputs, output: captured.__setitem__("features", output))
+    # what the optimiser, the gradient clipping and a saved state cover: the model, and the
+    # dense probe when there is one
+    trained = model if probe is None else nn.ModuleDict({"model": model, "probe": probe})
     groups = {}
-    for name, p in model.named_parameters():
+    for name, p in trained.named_parameters():
+        name = name.removeprefix("model.")
         scale = backbone_lr if name.startswith("backbone.") else 1.0
         decay = 0.0 if p.dim() < 2 or name.startswith("refpoint") else 1e-4
         groups.setdefault((scale, decay), []).append(p)
@@ -139,7 +153,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     folds = torch.as_tensor(folds_of_class)
     history, order, running, first, seconds = [], [], {}, 0, 0.0
     if state is not None:
-        first, seconds, order, running, history = resume.restore(state, model, optimizer, rng)
+        first, seconds, order, running, history = resume.restore(state, trained, optimizer,
+                                                                 rng)
     start = time.perf_counter() - seconds
     for step in range(first, steps):
         if len(order) < batch_size:
@@ -170,9 +185,17 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
                                                      denoise_class_weight)
             loss = loss + dn_loss
             parts.update({f"denoise {k}": v for k, v in dn_parts.items()})
+        if probe is not None:
+            features = captured.pop("features").float()
+            dense_depth = torch.from_numpy(np.stack([s.dense_depth for s in batch]))
+            dense_labels = torch.from_numpy(np.stack([s.dense_labels for s in batch]))
+            aux, aux_parts = dense.dense_loss(probe, features, dense_depth.flatten(0, 1),
+                                              dense_labels.flatten(0, 1).long())
+            loss = loss + dense_weight * aux
+            parts.update(aux_parts)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        torch.nn.utils.clip_grad_norm_(trained.parameters(), 1.0)
         optimizer.step()
         for k, v in dict(parts, total=float(loss.detach())).items():
             running[k] = running.get(k, 0.0) + v
@@ -183,14 +206,17 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
             log(f"step {step + 1}/{steps}  {minutes(elapsed, step + 1, steps)}  "
                 f"loss {mean['total']:.3f}  "
                 + "  ".join(f"{k} {mean[k]:.3f}" for k in ("center", "size", "rotation",
-                                                           "class", "denoise center")
+                                                           "class", "denoise center",
+                                                           "dense depth", "dense class")
                             if k in mean))
             running = {}
         if snapshot_every and (step + 1) % snapshot_every == 0 and step + 1 < steps:
             if save_state is not None:
-                save_state(resume.capture(model, optimizer, rng, order, running, history,
+                save_state(resume.capture(trained, optimizer, rng, order, running, history,
                                           step + 1, time.perf_counter() - start))
             if snapshot is not None:
                 snapshot(swap_norms(copy.deepcopy(model), to_trainable=False).eval(), step + 1)
+    if hook is not None:
+        hook.remove()
     model = swap_norms(model, to_trainable=False).eval()
     return model, history
