@@ -53,7 +53,9 @@ def read_boxes(path) -> list:
     return data["boxes"]
 
 
-def _inside(points, scale) -> np.ndarray:
+def inside_box(points, scale) -> np.ndarray:
+    """(P,) bool: points (P, 3) strictly inside ``scale`` = [xmin, xmax, ymin, ymax, zmin,
+    zmax] (the decoder box, in the snippet's local frame)."""
     lo, hi = np.asarray(scale[0::2]), np.asarray(scale[1::2])
     return np.all((points > lo) & (points < hi), -1)
 
@@ -94,7 +96,7 @@ def scene_snippets(folder, config, views: int = 3, stride: int = 1, dense: bool 
         T_local_world = geometry.invert(T_world_local)
         T_local_camera = T_local_world @ T_world_camera
         centers_local = centers_world @ T_local_world[:3, :3].T + T_local_world[:3, 3]
-        seen = _inside(centers_local, config.decoder_scale) & visible(
+        seen = inside_box(centers_local, config.decoder_scale) & visible(
             centers_world, sizes, T_world_camera, depths)
         camera = geometry.scale_camera(geometry.pinhole(np.stack(K_net)),
                                        1.0 / config.feature_stride)
