@@ -11,11 +11,11 @@ matching) or missed, and a missed one is put in the first bin that fits:
 * *other class near*: a scene box of another class has its centre within 0.5 m;
 * *nothing near*: no scene box of any class within 0.5 m: the network did not find it.
 
-It also says whether each object is a training target in some snippet: ``parq_train.data``'s
-rule (centre inside the decoder box, in view of some view and not behind a nearer surface) on
-the training-style windows (every keyframe starts one), and how many pixels the capture
-shows of it (parq-synth's ``visible`` record). Objects that are never a target cannot be
-learned; the table says how many of them show enough to be found.
+It also says whether each object is a training target in some snippet: the rule training uses,
+``parq_train.data.snippet_targets`` (centre inside the decoder box, in view of some view and
+not behind a nearer surface), on the training-style windows (every keyframe starts one), and
+how many pixels the capture shows of it (parq-synth's ``visible`` record). Objects that are
+never a target cannot be learned; the table says how many of them show enough to be found.
 
     python benchmarks/misses.py [--model models/parq-demo] [--val data/val] [--scenes 40]
 """
@@ -33,32 +33,31 @@ from tradeoff import add_scene_arguments, run_scenes, scenes_from_arguments
 
 NEAR = 0.5          # metres, horizontal distance between centres
 IOU = 0.25
-PIXEL_BINS = (0, 1, 800, 3000)    # lower edges: not shown, under 800, 800-3000, 3000 and more
+PIXEL_BINS = (0, 1, 800, 3000)    # lower edges of PIXEL_BIN_NAMES
+PIXEL_BIN_NAMES = ("not shown", "under 800 px", "800-3000 px", "3000 px or more")
 
 
-def target_anywhere(folder: pathlib.Path, config) -> np.ndarray:
-    """(boxes,) bool: whether each box of ``folder``'s boxes.json is a training target of some
-    snippet (parq_train.data's rule on the windows training takes, stride 1)."""
+def target_anywhere(folder: pathlib.Path, boxes: list, decoder_scale,
+                    snippet_gap: int) -> np.ndarray:
+    """(boxes,) bool: whether each of ``boxes`` (``folder``'s boxes.json) is a training target of
+    some snippet (parq_train.data.snippet_targets on the windows training takes, stride 1)."""
     from parq_train import data
-    from parq_runtime import geometry, keyframes
+    from parq_runtime import keyframes
     from parq_runtime.readers import open_capture
-    from PIL import Image
 
     capture = open_capture(folder, "scannet")
-    boxes = data.read_boxes(folder / "boxes.json")
     centers = np.array([b["center"] for b in boxes], np.float64).reshape(-1, 3)
     sizes = np.array([b["size"] for b in boxes], np.float64).reshape(-1, 3)
     keys = keyframes.select([f.cam_to_world for f in capture.frames])
+    depths = {}                                   # keyframe index -> (depth, K), read once
     target = np.zeros(len(boxes), bool)
-    for window in keyframes.windows(keys, 3, 1, config.snippet_gap):
+    for window in keyframes.windows(keys, 3, 1, snippet_gap):
         frames = [capture.frames[i] for i in window]
-        depths = [(np.asarray(Image.open(folder / "depth" / f"{f.name}.png"), np.float64)
-                   / 1000.0, f.intrinsics) for f in frames]
-        T_world_camera = np.stack([f.cam_to_world for f in frames])
-        T_local_world = geometry.invert(geometry.snippet_frame(T_world_camera))
-        centers_local = centers @ T_local_world[:3, :3].T + T_local_world[:3, 3]
-        target |= data.inside_box(centers_local, config.decoder_scale) & data.visible(
-            centers, sizes, T_world_camera, depths)
+        for i, f in zip(window, frames):
+            if i not in depths:
+                depths[i] = (data.read_depth(folder, f.name), f.intrinsics)
+        target |= data.snippet_targets(centers, sizes, np.stack([f.cam_to_world for f in frames]),
+                                       [depths[i] for i in window], decoder_scale)[2]
     return target
 
 
@@ -86,21 +85,22 @@ def miss_reason(truth, fused: list, up) -> str:
 
 
 def pixel_bin(pixels: int) -> str:
-    names = ("not shown", "under 800 px", "800-3000 px", "3000 px or more")
-    return names[int(np.searchsorted(PIXEL_BINS, pixels, side="right")) - 1]
+    return PIXEL_BIN_NAMES[int(np.searchsorted(PIXEL_BINS, pixels, side="right")) - 1]
 
 
 def analyse(detector, scenes: list) -> list:
     """One record per ground-truth box: class, found, why missed, target, pixels shown."""
     from parq_runtime import evaluation
 
-    config = _RuleConfig(detector.card.decoder_scale, detector.card.snippet_gap)
+    from parq_train.data import read_boxes
+
+    card = detector.card
     pairs, _ = run_scenes(detector, scenes, None, None)
     rows = []
     for folder, (fused, truth, up) in zip(scenes, pairs):
         _, found = evaluation.matches(fused, truth, IOU, up)
-        target = target_anywhere(folder, config)
-        boxes = json.loads((folder / "boxes.json").read_text())["boxes"]
+        boxes = read_boxes(folder / "boxes.json")
+        target = target_anywhere(folder, boxes, card.decoder_scale, card.snippet_gap)
         for j, box in enumerate(truth):
             rows.append({"scene": folder.name, "class": box.class_name,
                          "found": bool(found[j]),
@@ -108,14 +108,6 @@ def analyse(detector, scenes: list) -> list:
                          "target": bool(target[j]),
                          "pixels": int(boxes[j].get("visible", {}).get("max_pixels", -1))})
     return rows
-
-
-class _RuleConfig:
-    """The two fields of a model config that the training-target rule reads, from a card."""
-
-    def __init__(self, decoder_scale, snippet_gap):
-        self.decoder_scale = list(decoder_scale)
-        self.snippet_gap = int(snippet_gap)
 
 
 def report(rows: list, what: str) -> list:
@@ -137,7 +129,7 @@ def report(rows: list, what: str) -> list:
     lines += [f"| {k} | {v} |" for k, v in why.most_common()]
     lines += ["", "| pixels shown (most in one frame) | objects | a training target | found |",
               "|---|---:|---:|---:|"]
-    for name in ("not shown", "under 800 px", "800-3000 px", "3000 px or more"):
+    for name in PIXEL_BIN_NAMES:
         mine = [r for r in rows if pixel_bin(r["pixels"]) == name]
         lines.append(f"| {name} | {len(mine)} | {sum(r['target'] for r in mine)} | "
                      f"{sum(r['found'] for r in mine)} |")

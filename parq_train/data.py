@@ -53,11 +53,30 @@ def read_boxes(path) -> list:
     return data["boxes"]
 
 
-def inside_box(points, scale) -> np.ndarray:
+def _inside(points, scale) -> np.ndarray:
     """(P,) bool: points (P, 3) strictly inside ``scale`` = [xmin, xmax, ymin, ymax, zmin,
     zmax] (the decoder box, in the snippet's local frame)."""
     lo, hi = np.asarray(scale[0::2]), np.asarray(scale[1::2])
     return np.all((points > lo) & (points < hi), -1)
+
+
+def read_depth(folder, name: str) -> np.ndarray:
+    """(H, W) float64 metres: a generated scene's ``depth/<name>.png`` (millimetres, 0 = none)."""
+    return np.asarray(Image.open(pathlib.Path(folder) / "depth" / f"{name}.png"),
+                      dtype=np.float64) / 1000.0
+
+
+def snippet_targets(centers_world, sizes, T_world_camera, depths, decoder_scale) -> tuple:
+    """The training-target rule of one snippet: (T_local_world (4, 4), centers_local (B, 3),
+    seen (B,) bool). ``centers_world`` and ``sizes`` (B, 3) are the scene's boxes,
+    ``T_world_camera`` (V, 4, 4) the views' poses, ``depths`` V (depth, K) pairs; a box is a
+    target (``seen``) when its centre lies inside ``decoder_scale`` in the snippet's local frame
+    and :func:`visible` in some view."""
+    T_local_world = geometry.invert(geometry.snippet_frame(T_world_camera))
+    centers_local = centers_world @ T_local_world[:3, :3].T + T_local_world[:3, 3]
+    seen = _inside(centers_local, decoder_scale) & visible(
+        centers_world, sizes, T_world_camera, depths)
+    return T_local_world, centers_local, seen
 
 
 def scene_snippets(folder, config, views: int = 3, stride: int = 1, dense: bool = False) -> list:
@@ -81,8 +100,7 @@ def scene_snippets(folder, config, views: int = 3, stride: int = 1, dense: bool 
         for f in frames:
             if f.name not in cache:
                 image, K = preprocess.prepare(f.load_image(), f.intrinsics, config.image_size)
-                depth_path = folder / "depth" / f"{f.name}.png"
-                depth = np.asarray(Image.open(depth_path), dtype=np.float64) / 1000.0
+                depth = read_depth(folder, f.name)
                 targets = None
                 if dense:
                     mask = np.asarray(Image.open(folder / "instance" / f"{f.name}.png"), np.int64)
@@ -92,12 +110,9 @@ def scene_snippets(folder, config, views: int = 3, stride: int = 1, dense: bool 
             K_net.append(cache[f.name][1])
             depths.append(cache[f.name][2:4])
         T_world_camera = np.stack([f.cam_to_world for f in frames])
-        T_world_local = geometry.snippet_frame(T_world_camera)
-        T_local_world = geometry.invert(T_world_local)
+        T_local_world, centers_local, seen = snippet_targets(
+            centers_world, sizes, T_world_camera, depths, config.decoder_scale)
         T_local_camera = T_local_world @ T_world_camera
-        centers_local = centers_world @ T_local_world[:3, :3].T + T_local_world[:3, 3]
-        seen = inside_box(centers_local, config.decoder_scale) & visible(
-            centers_world, sizes, T_world_camera, depths)
         camera = geometry.scale_camera(geometry.pinhole(np.stack(K_net)),
                                        1.0 / config.feature_stride)
         out.append(Snippet(
