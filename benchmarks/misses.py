@@ -117,7 +117,8 @@ def report(rows: list, what: str) -> list:
              f"{found} of {n} objects found at IoU {IOU} (recall {found / n:.3f}).", "",
              "| class | objects | found | share found | a training target | found of targets |",
              "|---|---:|---:|---:|---:|---:|"]
-    classes = sorted({r["class"] for r in rows}, key=lambda c: -sum(r["class"] == c for r in rows))
+    counts = Counter(r["class"] for r in rows)
+    classes = sorted(counts, key=lambda c: (-counts[c], c))      # ties by name: a stable table
     for c in classes:
         mine = [r for r in rows if r["class"] == c]
         t = [r for r in mine if r["target"]]
