@@ -31,6 +31,14 @@ object in the room); the held-out cache must then have been generated with that 
 
     python benchmarks/spread.py models/parq-demo models/parq-demo:4x64 models/parq-demo:1x64 \
         --scenes 120 --seen-only --out benchmarks/results/spread-seen-only
+
+--baseline FILE.json:ENTRY makes the first row an entry of an earlier run's .json instead of a
+new run, so that runs on the same rooms rendered at another --size are paired (same scene
+count and the same ground-truth boxes per scene, checked; its setting comes with it):
+
+    python benchmarks/spread.py models/parq-demo --scenes 120 --size 320x240 \
+        --baseline benchmarks/results/spread-goal-criterion.json:work/parq-demo-goal \
+        --out benchmarks/results/spread-320-goal
 """
 from __future__ import annotations
 
@@ -145,6 +153,25 @@ def markdown(models: list, settings: list, rows: list, args) -> str:
     return "\n".join(lines) + "\n"
 
 
+def saved_counts(spec: str, scenes: int, seen_only: bool) -> tuple:
+    """'FILE.json:ENTRY' -> (label, (iters, queries, mirror), (scenes, thresholds, 3) counts)
+    of an earlier run of this script, checked to be on ``scenes`` scenes scored the same way."""
+    path, _, entry = spec.partition(".json:")
+    path = pathlib.Path(path + ".json")
+    try:
+        saved = json.loads(path.read_text())
+        counts = np.asarray(saved["scene_counts"][entry], dtype=np.int64)
+        setting = saved["settings"][saved["models"].index(entry)]
+    except (OSError, ValueError, KeyError) as e:
+        raise SystemExit(f"spread: --baseline {spec}: not an entry of a spread.py result "
+                         f"({e})")
+    if counts.shape != (scenes, len(THRESHOLDS), 3) or saved["seen_only"] != seen_only:
+        raise SystemExit(f"spread: --baseline {spec}: {saved['scenes']} scenes, seen-only "
+                         f"{saved['seen_only']}, not {scenes} and {seen_only}")
+    label = f"{entry} ({path.name}, {saved['size']})"
+    return label, (setting["iters"], setting["queries"], setting["mirror"]), counts
+
+
 def parse_entry(entry: str, iters: int | None, queries: int | None) -> tuple:
     """'MODEL[:ITERSxQUERIES][:mirror|:no-mirror]' -> (model folder, iterations, queries,
     mirror runs); without a setting, ``iters`` and ``queries``, without a mirror suffix None
@@ -181,6 +208,9 @@ def main():
                         "(parq-eval --seen-only) instead of every box in the room")
     p.add_argument("--threads", type=int, default=None,
                    help="onnxruntime threads (default: its own choice)")
+    p.add_argument("--baseline", default=None, metavar="FILE.json:ENTRY",
+                   help="first row: ENTRY's scene counts from an earlier run's .json (e.g. "
+                        "the same rooms at another --size) instead of a new run")
     p.add_argument("--out", default=str(common.RESULTS / "spread"),
                    help="output stem: .md and .json (default results/spread)")
     args = p.parse_args()
@@ -189,8 +219,13 @@ def main():
 
     from parq_runtime import Detector
 
+    labels, detectors, counts, settings = list(args.models), {}, [], []
+    if args.baseline:
+        label, setting, saved = saved_counts(args.baseline, args.scenes, args.seen_only)
+        labels.insert(0, label)
+        settings.append(setting)
+        counts.append(saved)
     scenes, _ = tradeoff.scenes_from_arguments(args)
-    detectors, counts, settings = {}, [], []
     for entry in args.models:
         model, iters, queries, mirror = parse_entry(entry, args.iters, args.queries)
         if model not in detectors:
@@ -203,17 +238,20 @@ def main():
         print(f"{entry}: " + "  ".join(
             f"F1@{t} {float(f1(counts[-1][:, i].sum(axis=0))):.3f}"
             for i, t in enumerate(THRESHOLDS)), file=sys.stderr, flush=True)
+    if args.baseline and not np.array_equal(counts[0][..., 2], counts[1][..., 2]):
+        raise SystemExit(f"spread: --baseline {args.baseline}: its scenes hold other "
+                         "ground-truth boxes than these")
     rows = spread(counts, args.resamples, args.block)
     out = pathlib.Path(args.out)
-    text = markdown(args.models, settings, rows, args)
+    text = markdown(labels, settings, rows, args)
     out.with_suffix(".md").write_text(text)
     out.with_suffix(".json").write_text(json.dumps(
         {"scenes": args.scenes, "size": args.size, "resamples": args.resamples,
          "seen_only": args.seen_only,
-         "block": args.block, "models": args.models,
+         "block": args.block, "models": labels, "baseline": args.baseline,
          "settings": [{"iters": i, "queries": q, "mirror": m} for i, q, m in settings],
          "rows": rows,
-         "scene_counts": {m: c.tolist() for m, c in zip(args.models, counts)}}, indent=1))
+         "scene_counts": {m: c.tolist() for m, c in zip(labels, counts)}}, indent=1))
     print(text)
 
 
