@@ -40,7 +40,7 @@ import sys
 import numpy as np
 
 import common
-from tradeoff import HELD_OUT_SEED, add_scene_arguments, scenes_from_arguments
+from tradeoff import add_scene_arguments, held_out_text, scenes_from_arguments
 
 VISIBILITY_BINS = (0, 1, 200, 800, 3000)     # pixel-count bins' lower edges
 IOUS = (0.25, 0.5)
@@ -218,7 +218,7 @@ def reach_table(scenes: list, classes) -> dict:
 
 
 def markdown(results: list, args, pixels: int) -> str:
-    lines = [f"{args.scenes} held-out scenes (parq-synth seed {HELD_OUT_SEED}, {args.size}), "
+    lines = [f"{held_out_text(args)}, "
              f"3-view snippets; visibility out of {pixels} pixels per snippet.", "",
              "| iterations x queries | scored against | F1@0.25 | F1@0.5 | recall@0.25 | "
              "precision@0.25 |", "|---|---|---:|---:|---:|---:|"]
@@ -298,7 +298,7 @@ def main():
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(
-        {"model": args.model, "scenes": args.scenes, "seed": HELD_OUT_SEED, "seen": args.seen,
+        {"model": args.model, "scenes": args.scenes, "seed": args.seed, "seen": args.seen,
          "results": results}, indent=1))
     text = markdown(results, args, 3 * size[0] * size[1])
     out.with_suffix(".md").write_text(text)

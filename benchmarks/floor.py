@@ -85,8 +85,7 @@ def main():
     rows = measure(detector, scenes, args.repeats)
     result = summary(rows)
     machine = common.machine()
-    lines = [f"{len(scenes)} held-out scenes (parq-synth seed {tradeoff.HELD_OUT_SEED}, "
-             f"{args.size}), {args.model} at its card's run setting; floor found by parq-run's "
+    lines = [f"{tradeoff.held_out_text(args)}, {args.model} at its card's run setting; floor found by parq-run's "
              f"pipeline against the truth (z = 0); sweep seconds: median of {args.repeats} a "
              f"scene, median over scenes, on {machine.get('cpu', 'this CPU')}.", "",
              "| floors | scenes | found | median error | 90% within | most | over 3 cm |",

@@ -242,8 +242,8 @@ def main() -> int:
                           10000, 40)
     machine = common.machine()
     lines = [f"Learned rescoring of fused boxes, {args.model}: fitted on {len(validation)} "
-             f"validation scenes ({', '.join(map(str, args.val))}), scored on {len(held_out)} "
-             f"held-out scenes (parq-synth seed {tradeoff.HELD_OUT_SEED}, {args.size}), "
+             f"validation scenes ({', '.join(map(str, args.val))}), scored on "
+             f"{tradeoff.held_out_text(args)}, "
              f"{iters} x {queries}{', mirror runs' if mirror else ''}; logistic regression "
              f"(L2 {args.l2}) on {len(FEATURES)} cluster statistics and the class; a cluster "
              f"is right when its box overlaps one of its class at IoU >= {LABEL_IOU}. "

@@ -23,7 +23,7 @@ import time
 from multiprocessing import Pool
 
 import common
-from tradeoff import add_scene_arguments, scenes_from_arguments
+from tradeoff import add_scene_arguments, held_out_text, scenes_from_arguments
 
 STRIDES = (3, 2, 1)
 SUPPORTS = (1, 2, 3, 4, 5, 6)
@@ -100,7 +100,7 @@ def write(out: pathlib.Path, rows: list, args) -> None:
          "queries": args.queries, "rows": rows}, indent=1))
     lines = [f"{args.model}, {args.iters} iterations x {args.queries} queries, 3-view snippets; "
              f"post-processing chosen per stride on {args.val} (ray fusion), held-out = "
-             f"{args.scenes} scenes of parq-synth seed 3000.", "",
+             f"{held_out_text(args)}.", "",
              "| stride | snippets (val / held-out) | chosen: threshold, support, region, ratio "
              "| val F1@0.25 / 0.5 | held-out F1@0.25 / 0.5 / 0.7 |",
              "|---:|---:|---|---:|---:|"]

@@ -126,8 +126,7 @@ def paired_cells(row: dict) -> list:
 
 
 def markdown(models: list, settings: list, rows: list, args) -> str:
-    lines = [f"{args.scenes} held-out scenes (parq-synth seed {tradeoff.HELD_OUT_SEED}, "
-             f"{args.size}), each model's card post-processing, at the setting (iterations "
+    lines = [f"{tradeoff.held_out_text(args)}, each model's card post-processing, at the setting (iterations "
              f"x queries) in its row; 90% intervals from {args.resamples} resamples of the "
              f"scenes; blocks: F1 of each run of {args.block} scenes."
              + (" Ground truth: only the boxes some frame of the capture shows "
@@ -219,13 +218,13 @@ def main():
 
     from parq_runtime import Detector
 
+    scenes, _ = tradeoff.scenes_from_arguments(args)
     labels, detectors, counts, settings = list(args.models), {}, [], []
     if args.baseline:
-        label, setting, saved = saved_counts(args.baseline, args.scenes, args.seen_only)
+        label, setting, saved = saved_counts(args.baseline, len(scenes), args.seen_only)
         labels.insert(0, label)
         settings.append(setting)
         counts.append(saved)
-    scenes, _ = tradeoff.scenes_from_arguments(args)
     for entry in args.models:
         model, iters, queries, mirror = parse_entry(entry, args.iters, args.queries)
         if model not in detectors:
@@ -246,7 +245,8 @@ def main():
     text = markdown(labels, settings, rows, args)
     out.with_suffix(".md").write_text(text)
     out.with_suffix(".json").write_text(json.dumps(
-        {"scenes": args.scenes, "size": args.size, "resamples": args.resamples,
+        {"scenes": len(scenes), "seed": args.seed, "size": args.size,
+         "resamples": args.resamples,
          "seen_only": args.seen_only,
          "block": args.block, "models": labels, "baseline": args.baseline,
          "settings": [{"iters": i, "queries": q, "mirror": m} for i, q, m in settings],

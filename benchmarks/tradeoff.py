@@ -1,7 +1,7 @@
 """Accuracy and latency as compute changes: the demo model on held-out generated scenes.
 
-Generates --scenes scenes with parq-synth seed 3000 (training used seed 1000, validation 2000,
-so no scene is shared), runs parq-run's pipeline (keyframes, 3-view snippets, scene fusion) at
+Generates --scenes scenes with parq-synth seed 3000 (training used seed 1000, validation 2000
+and 2001, so no scene is shared; --seed picks another held-out set), runs parq-run's pipeline (keyframes, 3-view snippets, scene fusion) at
 iterations 1, 2, 4, 8 x queries 16, 32, 64, 128 and the learned count, and reports scene-level
 F1 at IoU 0.25 / 0.5 / 0.7 (parq-eval's protocol, pooled over scenes) and the median latency per
 snippet (reading its frames included, after one warm-up pass over the scenes), with the model
@@ -27,6 +27,9 @@ import sys
 import common
 
 HELD_OUT_SEED = 3000
+# parq-synth seeds the demo saw: its training scenes (parq_train.cli.TRAIN_SEED) and the
+# validation scenes its card was tuned on (data/val, data/val2); --seed refuses them
+DEMO_SEEDS = (1000, 2000, 2001)
 ITERATIONS = (1, 2, 4, 8)
 QUERIES = (16, 32, 64, 128)
 
@@ -39,26 +42,52 @@ def add_scene_arguments(p: argparse.ArgumentParser, use: str, model: bool = True
         p.add_argument("--model", default=str(common.ROOT / "models" / "parq-demo"),
                        help=f"model folder to {use} (default models/parq-demo)")
     p.add_argument("--scenes", type=int, default=40,
-                   help=f"held-out scenes (parq-synth seed {HELD_OUT_SEED}) to score "
+                   help=f"held-out scenes (of parq-synth --seed) to {use} "
                         "(default 40)")
     p.add_argument("--frames", type=int, default=60,
                    help="frames per held-out scene (default 60)")
     p.add_argument("--size", default="160x120", help="rendered frame size (default 160x120)")
+    p.add_argument("--seed", type=int, nargs="+", default=[HELD_OUT_SEED],
+                   help=f"parq-synth seed(s) of the held-out scenes, --scenes of each (default "
+                        f"{HELD_OUT_SEED}, the documented numbers'); another seed gives a fresh "
+                        f"held-out set, except {', '.join(map(str, DEMO_SEEDS))}, which the "
+                        "demo was trained or tuned on")
 
 
 def scenes_from_arguments(args) -> tuple:
     """(held-out scene folders, generated where missing, (width, height)) from the
-    arguments of :func:`add_scene_arguments`."""
+    arguments of :func:`add_scene_arguments`: --scenes of each --seed, seed by seed."""
+    for seed in args.seed:
+        if seed in DEMO_SEEDS or seed < 0:
+            raise SystemExit(f"--seed {seed}: not a held-out seed (the demo was trained or "
+                             f"tuned on {', '.join(map(str, DEMO_SEEDS))}; seeds are >= 0)")
+    if len(set(args.seed)) < len(args.seed):
+        raise SystemExit("--seed: a seed is given twice")
     size = tuple(int(v) for v in args.size.split("x"))
-    return held_out_scenes(common.CACHE / f"held_out_{args.size}", args.scenes, args.frames,
-                           size), size
+    folders = []
+    for seed in args.seed:
+        name = f"held_out_{args.size}" + ("" if seed == HELD_OUT_SEED else f"_seed{seed}")
+        folders += held_out_scenes(common.CACHE / name, args.scenes, args.frames, size, seed)
+    return folders, size
 
 
-def held_out_scenes(folder: pathlib.Path, scenes: int, frames: int, size) -> list:
+def held_out_text(args) -> str:
+    """'N held-out scenes (parq-synth seed S, WxH)' for the arguments of
+    :func:`add_scene_arguments`, naming every seed."""
+    if len(args.seed) == 1:
+        return f"{args.scenes} held-out scenes (parq-synth seed {args.seed[0]}, {args.size})"
+    return (f"{args.scenes * len(args.seed)} held-out scenes (parq-synth seeds "
+            f"{', '.join(map(str, args.seed))}, {args.scenes} each, {args.size})")
+
+
+def held_out_scenes(folder: pathlib.Path, scenes: int, frames: int, size,
+                    seed: int = HELD_OUT_SEED) -> list:
+    """Scene folders 0 .. scenes - 1 of parq-synth ``seed`` in ``folder``, generated where
+    missing (a folder holds one seed's scenes: its name says which)."""
     from parq_synth import generate
     from parq_synth.writer import scene_name
 
-    generate(folder, scenes, HELD_OUT_SEED, frames=frames, size=size, skip_existing=True)
+    generate(folder, scenes, seed, frames=frames, size=size, skip_existing=True)
     return [folder / scene_name(k) for k in range(scenes)]
 
 
@@ -147,14 +176,13 @@ def write(out, rows, args, learned, earlier=None):
         w.writerows(rows)
     machine = common.machine()
     timed = earlier["machine"] if earlier else machine
-    record = {"machine": machine, "scenes": args.scenes, "seed": HELD_OUT_SEED,
+    record = {"machine": machine, "scenes": args.scenes, "seed": args.seed,
               "mirror": args.mirror, "rows": rows}
     if earlier:
         record["latency_from"] = {"file": str(args.latency_from), "machine": timed}
     out.with_suffix(".json").write_text(json.dumps(record, indent=1))
     source = f" (from {args.latency_from.name}, not timed in this run)" if earlier else ""
-    lines = [f"{args.scenes} held-out scenes (parq-synth seed {HELD_OUT_SEED}, {args.size}), "
-             f"3-view snippets{', each also run mirrored' if args.mirror else ''}, "
+    lines = [f"{held_out_text(args)}, 3-view snippets{', each also run mirrored' if args.mirror else ''}, "
              f"scene-level F1 (parq-eval); latency = median seconds per "
              f"snippet{' (both runs)' if args.mirror else ''} on {timed['cpu']}, "
              f"{timed['cores']} cores{source}.", "",

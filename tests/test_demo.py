@@ -48,6 +48,15 @@ def test_sample_scene_is_unseen():
     assert generated["seed"] not in used
 
 
+def test_benchmarks_refuse_the_seeds_the_demo_saw(monkeypatch):
+    """benchmarks/tradeoff.py --seed refuses DEMO_SEEDS: they must be the card's own."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import tradeoff
+    card = json.loads((DEMO / "model.json").read_text())
+    assert set(tradeoff.DEMO_SEEDS) == {card["extra"]["training"]["data"]["seed"],
+                                        *card["extra"]["postprocess_tuning"]["seeds"]}
+
+
 def test_demo_detects_objects_of_its_sample_scene():
     det = Detector(DEMO)
     capture = readers.open_capture(SAMPLE)
