@@ -85,9 +85,10 @@ def main():
     rows = measure(detector, scenes, args.repeats)
     result = summary(rows)
     machine = common.machine()
-    lines = [f"{tradeoff.held_out_text(args)}, {args.model} at its card's run setting; floor found by parq-run's "
-             f"pipeline against the truth (z = 0); sweep seconds: median of {args.repeats} a "
-             f"scene, median over scenes, on {machine.get('cpu', 'this CPU')}.", "",
+    lines = [f"{tradeoff.held_out_text(args)}, {args.model} at its card's run setting; floor "
+             f"found by parq-run's pipeline against the truth (z = 0); sweep seconds: median "
+             f"of {args.repeats} a scene, median over scenes, on "
+             f"{machine.get('cpu', 'this CPU')}.", "",
              "| floors | scenes | found | median error | 90% within | most | over 3 cm |",
              "|---|---:|---:|---:|---:|---:|---:|"]
     for key, s in result.items():

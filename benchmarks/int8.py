@@ -80,8 +80,7 @@ def main():
     f1 = []
     if args.demo_checkpoint is not None:
         demo = export_pair(args.demo_checkpoint, "demo", None)
-        scenes = tradeoff.held_out_scenes(common.CACHE / "held_out_160x120", args.scenes, 60,
-                                          (160, 120))
+        scenes = tradeoff.held_out_scenes(args.scenes, 60, (160, 120))
         for model_dir in demo:
             metrics, _ = tradeoff.evaluate_setting(Detector(model_dir), scenes, 2, 32)
             f1.append({t: metrics[t]["f1"] for t in metrics})

@@ -97,8 +97,7 @@ def main() -> int:
           f"{base}; best with mirror {best}", flush=True)
 
     size = tuple(int(v) for v in args.size.split("x"))
-    scenes = tradeoff.held_out_scenes(common.CACHE / f"held_out_{args.size}", args.scenes, 60,
-                                      size)
+    scenes = tradeoff.held_out_scenes(args.scenes, 60, size)
     rows = [(f"{iters} x {queries}, card, no mirror",
              *held_out(detector, scenes, iters, queries, None))]
     for entry in args.settings:

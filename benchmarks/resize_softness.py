@@ -84,10 +84,8 @@ def main():
 
     from parq_runtime import Detector
 
-    native = tradeoff.held_out_scenes(common.CACHE / "held_out_160x120", args.scenes, 60,
-                                      (160, 120))
-    large = tradeoff.held_out_scenes(common.CACHE / "held_out_320x240", args.scenes, 60,
-                                     (320, 240))
+    native = tradeoff.held_out_scenes(args.scenes, 60, (160, 120))
+    large = tradeoff.held_out_scenes(args.scenes, 60, (320, 240))
     sampled = [halved(f, common.CACHE / "held_out_320x240_pointsampled" / f.name, "point")
                for f in large]
     resized = [halved(f, common.CACHE / "held_out_320x240_resized" / f.name, "resize")
@@ -95,12 +93,13 @@ def main():
     detector = Detector(args.model)
     model = pathlib.Path(args.model).resolve()
     model = model.relative_to(common.ROOT) if model.is_relative_to(common.ROOT) else model
+    arms = (native, large, sampled, resized)
+    truth = spread.truth_counts(native, detector.classes)
+    if any(not np.array_equal(spread.truth_counts(s, detector.classes), truth)
+           for s in arms[1:]):
+        raise SystemExit("resize_softness: the renders hold different ground truth")
     iters, queries = detector.card.run_setting(None, None)
-    counts = [spread.scene_counts(detector, scenes, iters, queries)
-              for scenes in (native, large, sampled, resized)]
-    for c in counts[1:]:
-        if not np.array_equal(c[..., 2], counts[0][..., 2]):
-            raise SystemExit("resize_softness: the renders hold different ground truth")
+    counts = [spread.scene_counts(detector, scenes, iters, queries) for scenes in arms]
     rows = spread.spread(counts, 10000, 40)
     lines = [f"{model} at {iters} x {queries}"
              f"{', mirror runs' if detector.card.run_mirror else ''}, on {args.scenes} held-out "

@@ -80,7 +80,7 @@ def score(args) -> None:
         sys.exit("snippet_gap: tuning or export failed")
     detector = Detector(args.folder)
     gap = detector.card.snippet_gap
-    scenes = tradeoff.held_out_scenes(common.CACHE / "held_out_160x120", 40, 60, (160, 120))
+    scenes = tradeoff.held_out_scenes(40, 60, (160, 120))
     for iters in (1, 2, 4):
         m, _ = tradeoff.evaluate_setting(detector, scenes, iters, 32)
         print(f"{args.folder} (gap {gap}), {iters} x 32: " + f1_line(m), flush=True)

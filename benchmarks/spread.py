@@ -80,6 +80,16 @@ def counts_of(pairs: list, classes) -> np.ndarray:
     return counts
 
 
+def truth_counts(scenes: list, classes, seen_only: bool = False) -> np.ndarray:
+    """(scenes, thresholds) int: the ground-truth boxes each scene is scored against, as
+    :func:`counts_of` counts them, without running a model."""
+    from parq_runtime import evaluation
+
+    pairs = [([], *evaluation.load_ground_truth(folder / "boxes.json", seen_only))
+             for folder in scenes]
+    return counts_of(pairs, classes)[..., 2]
+
+
 def f1(summed: np.ndarray) -> np.ndarray:
     """F1 from (..., 3) summed counts."""
     denominator = summed[..., 1] + summed[..., 2]
@@ -126,9 +136,9 @@ def paired_cells(row: dict) -> list:
 
 
 def markdown(models: list, settings: list, rows: list, args) -> str:
-    lines = [f"{tradeoff.held_out_text(args)}, each model's card post-processing, at the setting (iterations "
-             f"x queries) in its row; 90% intervals from {args.resamples} resamples of the "
-             f"scenes; blocks: F1 of each run of {args.block} scenes."
+    lines = [f"{tradeoff.held_out_text(args)}, each model's card post-processing, at the "
+             f"setting (iterations x queries) in its row; 90% intervals from {args.resamples} "
+             f"resamples of the scenes; blocks: F1 of each run of {args.block} scenes."
              + (" Ground truth: only the boxes some frame of the capture shows "
                 "(parq-eval --seen-only)." if args.seen_only else ""), ""]
     head = "| model | setting | " + " | ".join(
@@ -222,6 +232,12 @@ def main():
     labels, detectors, counts, settings = list(args.models), {}, [], []
     if args.baseline:
         label, setting, saved = saved_counts(args.baseline, len(scenes), args.seen_only)
+        first = parse_entry(args.models[0], args.iters, args.queries)[0]
+        detectors[first] = Detector(first, threads=args.threads)
+        if not np.array_equal(truth_counts(scenes, detectors[first].classes, args.seen_only),
+                              saved[..., 2]):
+            raise SystemExit(f"spread: --baseline {args.baseline}: its scenes hold other "
+                             "ground-truth boxes than these")
         labels.insert(0, label)
         settings.append(setting)
         counts.append(saved)
@@ -237,9 +253,6 @@ def main():
         print(f"{entry}: " + "  ".join(
             f"F1@{t} {float(f1(counts[-1][:, i].sum(axis=0))):.3f}"
             for i, t in enumerate(THRESHOLDS)), file=sys.stderr, flush=True)
-    if args.baseline and not np.array_equal(counts[0][..., 2], counts[1][..., 2]):
-        raise SystemExit(f"spread: --baseline {args.baseline}: its scenes hold other "
-                         "ground-truth boxes than these")
     rows = spread(counts, args.resamples, args.block)
     out = pathlib.Path(args.out)
     text = markdown(labels, settings, rows, args)

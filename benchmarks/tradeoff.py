@@ -1,11 +1,12 @@
 """Accuracy and latency as compute changes: the demo model on held-out generated scenes.
 
 Generates --scenes scenes with parq-synth seed 3000 (training used seed 1000, validation 2000
-and 2001, so no scene is shared; --seed picks another held-out set), runs parq-run's pipeline (keyframes, 3-view snippets, scene fusion) at
-iterations 1, 2, 4, 8 x queries 16, 32, 64, 128 and the learned count, and reports scene-level
-F1 at IoU 0.25 / 0.5 / 0.7 (parq-eval's protocol, pooled over scenes) and the median latency per
-snippet (reading its frames included, after one warm-up pass over the scenes), with the model
-card's post-processing and, unless --mirror / --no-mirror say otherwise, its mirror runs.
+and 2001, so no scene is shared; --seed picks another held-out set), runs parq-run's pipeline
+(keyframes, 3-view snippets, scene fusion) at iterations 1, 2, 4, 8 x queries 16, 32, 64, 128
+and the learned count, and reports scene-level F1 at IoU 0.25 / 0.5 / 0.7 (parq-eval's
+protocol, pooled over scenes) and the median latency per snippet (reading its frames
+included, after one warm-up pass over the scenes), with the model card's post-processing and,
+unless --mirror / --no-mirror say otherwise, its mirror runs.
 Writes results/tradeoff.{md,csv,json,png}.
 
     python benchmarks/tradeoff.py [--model models/parq-demo] [--scenes 40]
@@ -64,11 +65,8 @@ def scenes_from_arguments(args) -> tuple:
     if len(set(args.seed)) < len(args.seed):
         raise SystemExit("--seed: a seed is given twice")
     size = tuple(int(v) for v in args.size.split("x"))
-    folders = []
-    for seed in args.seed:
-        name = f"held_out_{args.size}" + ("" if seed == HELD_OUT_SEED else f"_seed{seed}")
-        folders += held_out_scenes(common.CACHE / name, args.scenes, args.frames, size, seed)
-    return folders, size
+    return [folder for seed in args.seed
+            for folder in held_out_scenes(args.scenes, args.frames, size, seed)], size
 
 
 def held_out_text(args) -> str:
@@ -80,13 +78,15 @@ def held_out_text(args) -> str:
             f"{', '.join(map(str, args.seed))}, {args.scenes} each, {args.size})")
 
 
-def held_out_scenes(folder: pathlib.Path, scenes: int, frames: int, size,
-                    seed: int = HELD_OUT_SEED) -> list:
-    """Scene folders 0 .. scenes - 1 of parq-synth ``seed`` in ``folder``, generated where
-    missing (a folder holds one seed's scenes: its name says which)."""
+def held_out_scenes(scenes: int, frames: int, size, seed: int = HELD_OUT_SEED) -> list:
+    """Scene folders 0 .. scenes - 1 of parq-synth ``seed`` at ``size`` (width, height),
+    generated where missing into the cache folder of that size and seed
+    (held_out_<W>x<H>, with _seed<S> for seeds other than HELD_OUT_SEED)."""
     from parq_synth import generate
     from parq_synth.writer import scene_name
 
+    folder = common.CACHE / (f"held_out_{size[0]}x{size[1]}"
+                             + ("" if seed == HELD_OUT_SEED else f"_seed{seed}"))
     generate(folder, scenes, seed, frames=frames, size=size, skip_existing=True)
     return [folder / scene_name(k) for k in range(scenes)]
 
@@ -182,7 +182,8 @@ def write(out, rows, args, learned, earlier=None):
         record["latency_from"] = {"file": str(args.latency_from), "machine": timed}
     out.with_suffix(".json").write_text(json.dumps(record, indent=1))
     source = f" (from {args.latency_from.name}, not timed in this run)" if earlier else ""
-    lines = [f"{held_out_text(args)}, 3-view snippets{', each also run mirrored' if args.mirror else ''}, "
+    lines = [f"{held_out_text(args)}, 3-view "
+             f"snippets{', each also run mirrored' if args.mirror else ''}, "
              f"scene-level F1 (parq-eval); latency = median seconds per "
              f"snippet{' (both runs)' if args.mirror else ''} on {timed['cpu']}, "
              f"{timed['cores']} cores{source}.", "",
