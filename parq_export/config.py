@@ -15,6 +15,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from parq_runtime import fusion as scene_fusion  # not `fusion`: a field below has that name
+from parq_runtime import preprocess
 from parq_runtime.model_card import DEFAULT_RUN
 
 # Class names of the authors' ScanNet (Scan2CAD) release, in label order; label 9 is no-object.
@@ -60,6 +61,10 @@ class PARQConfig:
     classes: tuple = SCANNET_CLASSES
     mean_sizes: tuple = SCANNET_MEAN_SIZES  # len(classes) + 1 rows, the last for no-object
     image_size: tuple = (320, 240)
+    # how frames of another size are brought to image_size (parq_runtime.preprocess):
+    # "pillow-bilinear", the authors' antialiasing filter, or "point", pixel centres as a
+    # renderer samples them (parq-train's models, trained on frames rendered at image_size)
+    image_filter: str = preprocess.AUTHORS_FILTER
     pixel_mean: tuple = (0.485, 0.456, 0.406)
     pixel_std: tuple = (0.229, 0.224, 0.225)
     iterations: int = 8               # recurrent iterations used in training
@@ -117,6 +122,8 @@ class PARQConfig:
         if self.query_order and sorted(self.query_order) != list(range(self.num_queries)):
             problems.append(f"query_order must be a permutation of the {self.num_queries} "
                             "learned queries")
+        if self.image_filter not in preprocess.FILTERS:
+            problems.append(f"image_filter {self.image_filter!r} not in {preprocess.FILTERS}")
         if isinstance(self.snippet_gap, bool) or not isinstance(self.snippet_gap, int) \
                 or self.snippet_gap < 1:
             problems.append(f"snippet_gap {self.snippet_gap!r} must be an integer >= 1")

@@ -39,6 +39,13 @@ from .model import PARQ
 DEFAULT_OPSET = 18
 MAX_VIEWS = 9
 MAX_QUERIES = 1024
+# the card's words for image.filter (parq_runtime.preprocess)
+RESIZE_TEXT = {
+    "pillow-bilinear": "PIL.Image.resize BILINEAR (antialiased when shrinking); 1296x968 "
+                       "frames padded 2 px top and bottom first",
+    "point": "point samples: pixel (round(u * W / w), round(v * H / h)); 1296x968 frames "
+             "padded 2 px top and bottom first",
+}
 
 
 @dataclass
@@ -148,8 +155,7 @@ def build_card(model: PARQ, checkpoint: ckpt.Checkpoint, source: pathlib.Path,
         "mean_sizes": [list(map(float, m)) for m in c.mean_sizes],
         "image": {"width": c.image_size[0], "height": c.image_size[1], "channels": "RGB",
                   "dtype": "uint8", "layout": "NHWC",
-                  "resize": "PIL.Image.resize BILINEAR (antialiased when shrinking); "
-                            "1296x968 frames padded 2 px top and bottom first",
+                  "filter": c.image_filter, "resize": RESIZE_TEXT[c.image_filter],
                   "normalisation": {"scale": 1 / 255, "mean": list(c.pixel_mean),
                                     "std": list(c.pixel_std), "inside_graph": True}},
         "feature": {"stride": c.feature_stride, "width": fw, "height": fh,

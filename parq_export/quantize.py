@@ -47,7 +47,8 @@ def calibration_feeds(scenes_dir, card_config, views: int = 3, limit: int = 48) 
         for window in keyframes.windows(keys, views)[:2]:
             frames = [capture.frames[i] for i in window]
             prepared = [preprocess.prepare(f.load_image(), f.intrinsics,
-                                           card_config.image_size) for f in frames]
+                                           card_config.image_size, card_config.image_filter)
+                        for f in frames]
             images, camera, _, T_local_camera = snippet_inputs(
                 prepared, np.stack([f.cam_to_world for f in frames]), card_config.feature_stride,
                 capture.up)

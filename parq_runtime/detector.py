@@ -156,7 +156,7 @@ class Detector:
 
     def _prepare_view(self, i, image, K):
         try:
-            return preprocess.prepare(image, K, self.card.image_size)
+            return preprocess.prepare(image, K, self.card.image_size, self.card.image_filter)
         except ParqError as e:
             raise ParqError(f"view {i}: {e}") from None
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import fusion
+from . import fusion, preprocess
 from .errors import ParqError
 
 CARD_FORMAT = "parq-onnx-model"
@@ -44,6 +44,12 @@ class ModelCard:
     @property
     def image_size(self) -> tuple:
         return (int(self.raw["image"]["width"]), int(self.raw["image"]["height"]))
+
+    @property
+    def image_filter(self) -> str:
+        """How frames of another size are brought to :attr:`image_size`: ``pillow-bilinear``
+        (the authors') or ``point`` (parq_runtime.preprocess; cards before it: the authors')."""
+        return str(self.raw["image"].get("filter", preprocess.AUTHORS_FILTER))
 
     @property
     def feature_size(self) -> tuple:
@@ -248,6 +254,11 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
                             post.get("labels", fusion.AUTHORS_LABELS))
     if found:
         raise ParqError(f"{path}: postprocess: {'; '.join(found)}")
+    image = raw["image"] if isinstance(raw["image"], dict) else {}
+    if image.get("filter", preprocess.AUTHORS_FILTER) not in preprocess.FILTERS:
+        raise ParqError(f"{path}: image.filter must be one of {', '.join(preprocess.FILTERS)} "
+                        f"(how frames are resized to the network size), got "
+                        f"{image.get('filter')!r}")
     snippets = raw.get("snippets", {})
     gap = snippets.get("gap", 1) if isinstance(snippets, dict) else None
     if isinstance(gap, bool) or not isinstance(gap, int) or gap < 1:

@@ -10,6 +10,18 @@ Why Pillow and not OpenCV: the authors' numbers come from PIL's filter; measured
 frames (1296 x 972 -> 320 x 240, ``benchmarks/preprocess_numerics.py``), cv2.INTER_AREA lands up
 to tens of grey levels away from it and INTER_LINEAR (no antialiasing) further, while Pillow is
 the reference itself: 0 difference, at about 2 ms a frame.
+
+A model trained on frames rendered at its own size (``parq-train`` on ``parq-synth`` scenes)
+saw no filter at all: a renderer's pixel is its centre ray, a point sample.  Its card says
+``image.filter = "point"`` and frames of another size reach it point-sampled too: pixel (u, v)
+of the network image is pixel (round(u * W / w), round(v * H / h)) of the frame, whose ray is
+the one the scaled intrinsics give it (exactly, for whole-number ratios such as 320 -> 160).
+Measured on the demo model (``benchmarks/resize_softness.py``): 120 held-out rooms rendered at
+320x240 score F1@0.25 / F1@0.5 0.578 / 0.382 point-sampled to 160x120, level with the same
+rooms rendered at 160x120 (0.578 / 0.376), and 0.563 / 0.367 through Pillow's antialiasing
+filter, softer than anything that model trained on.  Point sampling aliases when it shrinks a
+lot (a 1296-wide camera frame to 160); it is right for models that were trained on aliased
+frames, and the authors' cards keep Pillow.
 """
 from __future__ import annotations
 
@@ -20,11 +32,16 @@ from .errors import ParqError
 
 SCANNET_SIZE = (1296, 968)
 SCANNET_PAD = 2  # rows added at the top and at the bottom
+AUTHORS_FILTER = "pillow-bilinear"
+FILTERS = (AUTHORS_FILTER, "point")  # how a frame is brought to the network size
 
 
-def prepare(image: np.ndarray, K: np.ndarray, size: tuple) -> tuple:
+def prepare(image: np.ndarray, K: np.ndarray, size: tuple,
+            filter: str = AUTHORS_FILTER) -> tuple:
     """RGB uint8 (H, W, 3) and its 3x3 intrinsics -> (uint8 (h, w, 3) at ``size`` = (w, h),
-    scaled 3x3 intrinsics, float64)."""
+    scaled 3x3 intrinsics, float64); ``filter`` one of FILTERS (module doc)."""
+    if filter not in FILTERS:
+        raise ParqError(f"unknown resize filter {filter!r} (one of {', '.join(FILTERS)})")
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise ParqError(f"expected an RGB uint8 image (H, W, 3), got {image.dtype} "
@@ -42,7 +59,17 @@ def prepare(image: np.ndarray, K: np.ndarray, size: tuple) -> tuple:
         K[1, 2] += SCANNET_PAD
         h += 2 * SCANNET_PAD
     if (w, h) != tuple(size):
-        image = np.asarray(Image.fromarray(image).resize(tuple(size), Image.BILINEAR))
+        if filter == "point":
+            image = image[point_samples(h, size[1])][:, point_samples(w, size[0])]
+        else:
+            image = np.asarray(Image.fromarray(image).resize(tuple(size), Image.BILINEAR))
         K[0, :] /= w / size[0]
         K[1, :] /= h / size[1]
     return np.ascontiguousarray(image), K
+
+
+def point_samples(n_in: int, n_out: int) -> np.ndarray:
+    """(n_out,) indices of the input pixels along one axis that a point-sampling resize from
+    ``n_in`` to ``n_out`` pixels takes: the nearest to u * n_in / n_out, where the intrinsics
+    scaled by n_out / n_in put output pixel u's ray."""
+    return np.minimum(np.rint(np.arange(n_out) * (n_in / n_out)).astype(np.int64), n_in - 1)

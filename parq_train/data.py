@@ -99,7 +99,8 @@ def scene_snippets(folder, config, views: int = 3, stride: int = 1, dense: bool 
         images, K_net, depths = [], [], []
         for f in frames:
             if f.name not in cache:
-                image, K = preprocess.prepare(f.load_image(), f.intrinsics, config.image_size)
+                image, K = preprocess.prepare(f.load_image(), f.intrinsics, config.image_size,
+                                              config.image_filter)
                 depth = read_depth(folder, f.name)
                 targets = None
                 if dense:

@@ -50,7 +50,8 @@ def frame_targets(folder, config, stride: int = 4) -> tuple:
     images, depths, labels = [], [], []
     for i in keyframes.select([f.cam_to_world for f in capture.frames]):
         f = capture.frames[i]
-        image, _ = preprocess.prepare(f.load_image(), f.intrinsics, config.image_size)
+        image, _ = preprocess.prepare(f.load_image(), f.intrinsics, config.image_size,
+                                      config.image_filter)
         depth = np.asarray(Image.open(folder / "depth" / f"{f.name}.png"), np.float64) / 1000
         mask = np.asarray(Image.open(folder / "instance" / f"{f.name}.png"), np.int64)
         log_depth, label = dense_targets(depth, mask, lut, config.feature_size)

@@ -92,6 +92,36 @@ def test_snippet_gap_is_written_to_the_card_and_checked(tiny_model, tmp_path):
         tiny_config().replace(snippet_gap=0)
 
 
+def test_image_filter_is_written_to_the_card_and_used(tiny_model, tmp_path):
+    """The card records how frames are resized (the authors' Pillow filter unless the config
+    says otherwise); a card without it reads as Pillow (cards written before); with "point"
+    the detector takes pixel centres of a frame twice the network size, with the same
+    intrinsics; an unknown filter is refused, as in a config."""
+    card = json.loads((tiny_model / "model.json").read_text())
+    assert card["image"]["filter"] == "pillow-bilinear" == card["config"]["image_filter"]
+    image = {k: v for k, v in card["image"].items() if k != "filter"}
+    other = model_with_card(tiny_model, tmp_path / "other", dict(card, image=image))
+    assert Detector(other).card.image_filter == "pillow-bilinear"
+    rng = np.random.default_rng(5)
+    frames = [rng.integers(0, 256, (96, 128, 3), dtype=np.uint8) for _ in range(2)]
+    K = np.array([[120.0, 0, 64], [0, 120.0, 48], [0, 0, 1]])
+    T_world_camera = np.repeat(np.eye(4)[None], 2, 0)
+    T_world_camera[:, :3, :3] = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]  # looking along world y
+    T_world_camera[:, 0, 3] = [0.0, 0.1]
+    soft, camera, *_ = Detector(other).prepare(frames, K, T_world_camera)
+    (other / "model.json").write_text(json.dumps(dict(card, image=dict(image, filter="point"))))
+    sharp, camera_point, *_ = Detector(other).prepare(frames, K, T_world_camera)
+    np.testing.assert_array_equal(sharp, np.stack([f[::2, ::2] for f in frames]))
+    assert not np.array_equal(soft, sharp)
+    np.testing.assert_array_equal(camera_point, camera)
+    (other / "model.json").write_text(json.dumps(dict(card, image=dict(image, filter="area"))))
+    with pytest.raises(ParqError, match="image.filter must be one of pillow-bilinear, point"):
+        Detector(other)
+    assert tiny_config().replace(image_filter="point").image_filter == "point"
+    with pytest.raises(ValueError, match="image_filter"):
+        tiny_config().replace(image_filter="area")
+
+
 def test_run_setting_is_written_to_the_card_and_checked(tiny_model, tmp_path):
     """The card records parq-run's default iterations, queries and mirror runs (2 x 32, none,
     unless tuned); a card without them reads as 2 x 32 without mirror runs (cards written
