@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import pathlib
 import statistics
 import sys
@@ -87,7 +88,8 @@ def held_out_scenes(scenes: int, frames: int, size, seed: int = HELD_OUT_SEED) -
 
     folder = common.CACHE / (f"held_out_{size[0]}x{size[1]}"
                              + ("" if seed == HELD_OUT_SEED else f"_seed{seed}"))
-    generate(folder, scenes, seed, frames=frames, size=size, skip_existing=True)
+    generate(folder, scenes, seed, frames=frames, size=size, skip_existing=True,
+             jobs=os.cpu_count() or 1)  # the same scenes whatever the processes
     return [folder / scene_name(k) for k in range(scenes)]
 
 
