@@ -32,11 +32,14 @@ HELD_OUT_SEED = 3000
 
 
 def demo_config(**overrides):
-    """The shipped demo model: ResNet18 at a quarter width, 128-channel features, 160x120."""
+    """The shipped demo model: ResNet18 at a quarter width, 128-channel features, 160x120,
+    frames of other sizes point-sampled to it as parq-synth renders its training frames
+    (parq_runtime.preprocess)."""
     from parq_export.config import PARQConfig
 
     base = dict(resnet_depth=18, resnet_width=16, fpn_channels=32, heads=4, ffn_dim=256,
-                num_queries=64, ray_samples=32, image_size=(160, 120), iterations=4)
+                num_queries=64, ray_samples=32, image_size=(160, 120), iterations=4,
+                image_filter="point")
     base.update(overrides)
     return PARQConfig(**base)
 

@@ -8,7 +8,9 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 parq-synth data/val --scenes 40 --seed 2000 --frames 60 --width 160 --height 120 --jobs 2 --quiet
 parq-synth data/val2 --scenes 120 --seed 2001 --frames 60 --width 160 --height 120 --jobs 2 --quiet
-# generates its 1600 training scenes of 30 frames into data/train1600, then trains
+# generates its 1600 training scenes of 30 frames into data/train1600, then trains (the demo
+# configuration names point sampling as its resize filter, so the card it exports to does too;
+# the shipped card got it by parq_export.card_rewrite on 2026-12-06, the weights unchanged)
 parq-train work/demo.pt --seed 0 --data data/train1600 --scenes 1600 --frames 30 --jobs 2
 # ranks the learned queries (and chooses a post-processing for 2 x 32) on the 40 scenes of
 # seed 2000, as the shipped card's query ranking was made
