@@ -16,10 +16,10 @@ saw no filter at all: a renderer's pixel is its centre ray, a point sample.  Its
 ``image.filter = "point"`` and frames of another size reach it point-sampled too: pixel (u, v)
 of the network image is pixel (round(u * W / w), round(v * H / h)) of the frame, whose ray is
 the one the scaled intrinsics give it (exactly, for whole-number ratios such as 320 -> 160).
-Measured on the demo model (``benchmarks/resize_softness.py``): 120 held-out rooms rendered at
-320x240 score F1@0.25 / F1@0.5 0.578 / 0.382 point-sampled to 160x120, level with the same
-rooms rendered at 160x120 (0.578 / 0.376), and 0.563 / 0.367 through Pillow's antialiasing
-filter, softer than anything that model trained on.  Point sampling aliases when it shrinks a
+Measured on the demo model (``benchmarks/resize_softness.py --seed 3000 5000 --scenes 120``):
+240 held-out rooms rendered at 320x240 score F1@0.25 / F1@0.5 0.566 / 0.371 point-sampled to
+160x120, level with the same rooms rendered at 160x120 (0.566 / 0.368), and 0.559 / 0.360
+through Pillow's antialiasing filter, softer than anything that model trained on.  Point sampling aliases when it shrinks a
 lot (a 1296-wide camera frame to 160); it is right for models that were trained on aliased
 frames, and the authors' cards keep Pillow.
 """
@@ -37,11 +37,12 @@ FILTERS = (AUTHORS_FILTER, "point")  # how a frame is brought to the network siz
 
 
 def prepare(image: np.ndarray, K: np.ndarray, size: tuple,
-            filter: str = AUTHORS_FILTER) -> tuple:
+            image_filter: str = AUTHORS_FILTER) -> tuple:
     """RGB uint8 (H, W, 3) and its 3x3 intrinsics -> (uint8 (h, w, 3) at ``size`` = (w, h),
-    scaled 3x3 intrinsics, float64); ``filter`` one of FILTERS (module doc)."""
-    if filter not in FILTERS:
-        raise ParqError(f"unknown resize filter {filter!r} (one of {', '.join(FILTERS)})")
+    scaled 3x3 intrinsics, float64); ``image_filter`` one of FILTERS (module doc)."""
+    if image_filter not in FILTERS:
+        raise ParqError(f"unknown resize filter {image_filter!r} (one of "
+                        f"{', '.join(FILTERS)})")
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise ParqError(f"expected an RGB uint8 image (H, W, 3), got {image.dtype} "
@@ -59,7 +60,7 @@ def prepare(image: np.ndarray, K: np.ndarray, size: tuple,
         K[1, 2] += SCANNET_PAD
         h += 2 * SCANNET_PAD
     if (w, h) != tuple(size):
-        if filter == "point":
+        if image_filter == "point":
             image = image[point_samples(h, size[1])][:, point_samples(w, size[0])]
         else:
             image = np.asarray(Image.fromarray(image).resize(tuple(size), Image.BILINEAR))
