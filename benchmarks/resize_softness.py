@@ -142,8 +142,8 @@ def main():
     rows = spread.spread(counts, 10000, 40)
     lines = [f"{model} at {iters} x {queries}"
              f"{', mirror runs' if detectors[0].card.run_mirror else ''}, on "
-             f"{where}, the same rooms rendered at two sizes; 90% intervals and paired differences from 10,000 resamples of the "
-             "scenes.", "",
+             f"{where}, the same rooms rendered at two sizes; 90% intervals and paired "
+             "differences from 10,000 resamples of the scenes.", "",
              "| frames | F1@0.25 | vs 160x120, paired | F1@0.5 | vs 160x120, paired |",
              "|---|---|---|---|---|"]
     for label, row in zip(LABELS, rows):

@@ -177,8 +177,7 @@ def card_config(card) -> PARQConfig:
     was), with what the runtime reads from elsewhere in the card taken from there, since a
     tuning rewrites those (parq_export.card_rewrite) and older cards' ``config`` predates
     some: the post-processing, the query ranking, the snippet gap, the resize filter and the
-    run setting.  So
-    the rebuilt checkpoint exports to the card it came from."""
+    run setting.  So the rebuilt checkpoint exports to the card it came from."""
     order = card.query_order
     return PARQConfig.from_dict(card.raw["config"]).replace(
         score_threshold=card.score_threshold, nms_iou=card.nms_iou,
@@ -186,8 +185,8 @@ def card_config(card) -> PARQConfig:
         ray_ratio=card.ray_ratio, scene_nms=card.scene_nms, floor_classes=card.floor_classes,
         floor_weight=card.floor_weight, labels=card.labels,
         query_order=() if order is None else tuple(int(i) for i in order),
-        snippet_gap=card.snippet_gap, image_filter=card.image_filter, run_iters=card.run_iters, run_queries=card.run_queries,
-        run_mirror=card.run_mirror)
+        snippet_gap=card.snippet_gap, image_filter=card.image_filter,
+        run_iters=card.run_iters, run_queries=card.run_queries, run_mirror=card.run_mirror)
 
 
 def rebuild(folder, opset: int = DEFAULT_OPSET, log=print) -> PARQ:

@@ -19,9 +19,9 @@ the one the scaled intrinsics give it (exactly, for whole-number ratios such as 
 Measured on the demo model (``benchmarks/resize_softness.py --seed 3000 5000 --scenes 120``):
 240 held-out rooms rendered at 320x240 score F1@0.25 / F1@0.5 0.566 / 0.371 point-sampled to
 160x120, level with the same rooms rendered at 160x120 (0.566 / 0.368), and 0.559 / 0.360
-through Pillow's antialiasing filter, softer than anything that model trained on.  Point sampling aliases when it shrinks a
-lot (a 1296-wide camera frame to 160); it is right for models that were trained on aliased
-frames, and the authors' cards keep Pillow.
+through Pillow's antialiasing filter, softer than anything that model trained on.  Point
+sampling aliases when it shrinks a lot (a 1296-wide camera frame to 160); it is right for
+models that were trained on unfiltered frames, and the authors' cards keep Pillow.
 """
 from __future__ import annotations
 
