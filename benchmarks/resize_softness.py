@@ -20,7 +20,8 @@ on the same held-out rooms four ways, paired over 10,000 resamples of the scenes
 
 The two parq-run arms use copies of the model folder that differ from it only in
 image.filter (parq_export.card_rewrite), written to benchmarks/.cache/; the derived scenes of
-the last arm to benchmarks/.cache/held_out_320x240_resized (colour, poses, intrinsics, boxes).
+the last arm to benchmarks/.cache/<folder of the 320x240 scenes>_resized (colour, poses,
+intrinsics, boxes).
 A deficit in both Pillow arms and none point-sampled means the cost at 320x240 is the
 softness of the resize, not the geometry.
 
@@ -118,18 +119,17 @@ def main():
             if Image.open(first).size != size:
                 raise SystemExit(f"resize_softness: {first}: not {size[0]}x{size[1]}")
         where = f"{len(native)} scenes of {args.pair[0]} and {args.pair[1]}"
-        derived = common.CACHE / f"{args.pair[1].resolve().name}_resized"
     else:
         native, _ = tradeoff.scenes_from_arguments(args)
         args.size = "320x240"
         large, _ = tradeoff.scenes_from_arguments(args)
         where = tradeoff.held_out_text(args).replace(", 320x240)", ")")
-        derived = None
-    resized = [halved(f, (derived or f.parent.with_name(
-        f.parent.name.replace("320x240", "320x240_resized"))) / f.name) for f in large]
+    resized = [halved(f, common.CACHE / f"{f.parent.resolve().name}_resized" / f.name)
+               for f in large]
     model = pathlib.Path(args.model).resolve()
-    detectors = [Detector(model), Detector(with_filter(model, "pillow-bilinear")),
-                 Detector(with_filter(model, "point")), Detector(model)]
+    card = Detector(model)
+    detectors = [card, Detector(with_filter(model, "pillow-bilinear")),
+                 Detector(with_filter(model, "point")), card]
     model = model.relative_to(common.ROOT) if model.is_relative_to(common.ROOT) else model
     arms = (native, large, large, resized)
     classes = detectors[0].classes

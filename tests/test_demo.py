@@ -90,26 +90,23 @@ def test_demo_point_samples_larger_frames_as_its_training_frames_were_rendered(t
     pixel repeated 2 x 2, intrinsics doubled) reaches the network as the original pixels with
     the original intrinsics, so every snippet detects the same boxes in it. (Not the same
     scene boxes to the bit: the floor sweep reads the frames at their own size.)"""
+    import shutil
+
     from PIL import Image
 
-    assert Detector(DEMO).card.image_filter == "point"
+    det = Detector(DEMO)
+    assert det.card.image_filter == "point"
     large = tmp_path / "large"
-    for sub in ("pose", "intrinsic"):
-        (large / sub).mkdir(parents=True)
-        for f in (SAMPLE / sub).iterdir():
-            (large / sub / f.name).write_bytes(f.read_bytes())
-    for name in ("scene.json", "boxes.json"):
-        (large / name).write_bytes((SAMPLE / name).read_bytes())
+    shutil.copytree(SAMPLE, large)
     K = np.loadtxt(SAMPLE / "intrinsic" / "intrinsic_color.txt")
     K[:2] *= 2
     np.savetxt(large / "intrinsic" / "intrinsic_color.txt", K)
-    (large / "color").mkdir()
-    for f in (SAMPLE / "color").iterdir():
+    for f in (large / "color").iterdir():
         small = np.asarray(Image.open(f))
-        Image.fromarray(small.repeat(2, 0).repeat(2, 1)).save(large / "color" / f.name)
-    det = Detector(DEMO)
+        Image.fromarray(small.repeat(2, 0).repeat(2, 1)).save(f)
     results = [scene.run(det, readers.open_capture(folder), scene.RunSettings())
                for folder in (SAMPLE, large)]
+
     def detections(result):
         return [(b.label, b.score, b.center.tolist(), b.size.tolist())
                 for s in result.snippets for b in s.boxes]
