@@ -24,7 +24,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
     p.add_argument("--quantize", choices=("int8",), default=None,
                    help="int8 convolutions in backbone.onnx (static QDQ, calibrated on "
-                        "generated scenes); see the README for when it pays")
+                        "generated scenes); see docs/speed.md for when it pays")
     p.add_argument("--calibration", type=pathlib.Path, default=None,
                    help="folder of parq-synth scenes to calibrate --quantize with (default: 8 "
                         "scenes generated on the fly)")

@@ -21,7 +21,7 @@ A scene box is the cluster of the detections matched to it, summarised by ``mode
   ``score * ((I - r r^T) + r r^T / ray_ratio)`` for the unit ray ``r``.  A snippet's three
   views are close together, so a detection's depth along the ray is its least certain part
   (on the demo's held-out scenes, median error 0.186 m along the ray and 0.079 m across it,
-  README); snippets that see the object from other directions pin that depth down, as in
+  docs/demo-experiments.md); snippets that see the object from other directions pin that depth down, as in
   triangulation.  ``ray_ratio`` 1 is ``mean``; a box with no viewpoint counts isotropically.
 
 ``scene_nms``: scene boxes of one class that overlap by more than this IoU are taken for one
@@ -69,7 +69,7 @@ at its card's threshold and region: mean/2 0.494 / 0.274, ray/2 (ratio 5) 0.534 
 (ratio 10) 0.534 / 0.339; on the held-out scenes mean/2 0.436 / 0.197, ray/2 0.461 / 0.226
 (ratio 5) and 0.482 / 0.274 (ratio 10).  Chosen again on 160 validation scenes for the
 demo's run setting (2 iterations x 64 queries), the ratio is 30: 0.489 / 0.307 on 120 held-out
-scenes (README); with mirror runs, the card's run setting since, support 4 runs: 0.504 / 0.354;
+scenes (docs/demo-model.md); with mirror runs, the card's run setting since, support 4 runs: 0.504 / 0.354;
 with scene NMS 0.05 after that: 0.523 / 0.349; with sizes averaged in one box's axes
 (``aligned_size``), 0.540 / 0.356; with the floor prior (scene NMS 0.1, five floor classes at
 weight 3), 0.577 / 0.375; with labels by vote (the current card), 0.583 / 0.385.

@@ -1,6 +1,6 @@
 """onnxruntime sessions for the two graphs, with the options the runtime uses.
 
-Choices (measured in ``benchmarks/session_options.py``; see the README):
+Choices (measured in ``benchmarks/session_options.py``; see docs/speed.md):
 * graph optimisation ORT_ENABLE_ALL: folds the frozen batch norms into the convolutions and
   picks the blocked (NCHWc) convolution kernels;
 * intra-op threads: all physical cores unless ``threads`` says otherwise; inter-op 1 (the graphs

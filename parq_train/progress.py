@@ -3,7 +3,7 @@ far and the minutes left at the rate so far.
 
 The recipe is a fixed number of steps, so its duration depends on the machine: the demo's
 81 minutes were measured on 2-core Xeons (AVX-512); on a 2-core AVX2 EPYC the same steps take
-about twice as long (README, "The demo model").  The estimate tells a user within the first
+about twice as long (README, "Rebuilding it").  The estimate tells a user within the first
 log lines what the command will take on theirs.
 """
 from __future__ import annotations
