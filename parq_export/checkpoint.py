@@ -109,6 +109,8 @@ class _RestrictedPickle:
 def safe_load(path) -> object:
     """torch.load through :class:`_RestrictedUnpickler`; ParqError for unreadable files."""
     path = pathlib.Path(path)
+    if path.is_dir():
+        raise ParqError(f"{path}: is a folder, expected a checkpoint file")
     if not path.is_file():
         raise ParqError(f"{path}: checkpoint not found")
     try:

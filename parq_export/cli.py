@@ -7,6 +7,7 @@ import sys
 
 from parq_runtime.arguments import OneLineParser, integer
 from parq_runtime.errors import ParqError
+from parq_runtime.files import os_error
 
 
 def parser() -> argparse.ArgumentParser:
@@ -21,7 +22,9 @@ def parser() -> argparse.ArgumentParser:
                         "extension, beside it)")
     p.add_argument("--opset", type=integer, default=18, choices=(17, 18),
                    help="ONNX opset (default 18)")
-    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing model folder (only one that holds nothing but "
+                        "an export's backbone.onnx, layer.onnx and model.json)")
     p.add_argument("--quantize", choices=("int8",), default=None,
                    help="int8 convolutions in backbone.onnx (static QDQ, calibrated on "
                         "generated scenes); see docs/speed.md for when it pays")
@@ -46,6 +49,9 @@ def main(argv=None) -> int:
     except ParqError as e:
         print(f"parq-export: error: {e}", file=sys.stderr)
         return e.exit_code
+    except OSError as e:    # a path the checks could not foresee (permissions)
+        print(f"parq-export: error: {os_error(e)}", file=sys.stderr)
+        return ParqError.exit_code
     except KeyboardInterrupt:
         print("parq-export: interrupted (nothing was written)", file=sys.stderr)
         return 130

@@ -241,6 +241,25 @@ def _file_sha256(path) -> str:
     return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
 
 
+# What parq-export writes into a model folder: --force replaces a folder holding only these.
+MODEL_FILES = ("backbone.onnx", "layer.onnx", "model.json")
+
+
+def check_replaceable(out_dir: pathlib.Path) -> None:
+    """ParqError unless ``out_dir`` is a model folder that --force may replace whole: a
+    folder holding nothing but an export's files (a file, or a folder with anything else in
+    it, such as the checkpoint itself, is never deleted)."""
+    if not out_dir.is_dir():
+        raise ParqError(f"{out_dir}: is a file, not a model folder (--force replaces only "
+                        "a model folder)")
+    others = sorted(p.name for p in out_dir.iterdir() if p.name not in MODEL_FILES)
+    if others:
+        shown = ", ".join(others[:3]) + (f" and {len(others) - 3} more" if len(others) > 3
+                                         else "")
+        raise ParqError(f"{out_dir}: holds files an export does not write ({shown}); "
+                        "--force replaces only a model folder, choose another -o")
+
+
 def export(checkpoint_path, out_dir, opset: int = DEFAULT_OPSET, check: bool = True,
            overwrite: bool = False, log=print, quantize: str | None = None,
            calibration=None) -> ExportResult:
@@ -257,8 +276,12 @@ def export(checkpoint_path, out_dir, opset: int = DEFAULT_OPSET, check: bool = T
     if opset not in (17, 18):
         raise ParqError(f"--opset {opset}: use 17 or 18 (onnxruntime's CUDA provider has no "
                         "GridSample-20, and the graphs need LayerNormalization-17)")
+    if quantize is None and calibration is not None:
+        raise ParqError(f"--calibration {calibration}: only used with --quantize int8")
     if out_dir.exists() and not overwrite:
         raise ParqError(f"{out_dir}: already exists (use --force to replace it)")
+    if out_dir.exists():
+        check_replaceable(out_dir)
     parent = out_dir.absolute().parent
     if not parent.is_dir():
         raise ParqError(f"{parent}: output folder's parent does not exist")

@@ -502,3 +502,42 @@ def test_cached_operands_without_token_biases_give_the_same_attention():
         assert not torch.allclose(biased[0], bare[0])
         torch.testing.assert_close(decoder.cross_attention(x, *bare),
                                    decoder.cross_attention(x, *biased), atol=2e-5, rtol=1e-5)
+
+
+def export_cli(capsys, *args):
+    """parq-export in this process: (exit code, stderr)."""
+    from parq_export import cli
+
+    code = cli.main([str(a) for a in args])
+    return code, capsys.readouterr().err
+
+
+def test_force_replaces_only_a_model_folder(tiny_checkpoint, tmp_path, capsys):
+    work = tmp_path / "work"                # the checkpoint beside a user's notes
+    work.mkdir()
+    ckpt = work / "model.pt"
+    ckpt.write_bytes(tiny_checkpoint.read_bytes())
+    (work / "notes.txt").write_text("precious")
+    code, err = export_cli(capsys, ckpt, "-o", work, "--force", "--no-check")
+    assert code == 2 and "notes.txt" in err and "--force replaces only a model folder" in err
+    assert sorted(p.name for p in work.iterdir()) == ["model.pt", "notes.txt"]
+    (tmp_path / "keep.txt").write_text("keep")
+    code, err = export_cli(capsys, ckpt, "-o", tmp_path / "keep.txt", "--force", "--no-check")
+    assert code == 2 and "is a file, not a model folder" in err
+    assert (tmp_path / "keep.txt").read_text() == "keep"
+    out = tmp_path / "model"                # an earlier export is replaced
+    assert export_cli(capsys, ckpt, "-o", out, "--no-check")[0] == 0
+    before = (out / "model.json").stat().st_mtime_ns
+    assert export_cli(capsys, ckpt, "-o", out, "--force", "--no-check")[0] == 0
+    assert sorted(p.name for p in out.iterdir()) == ["backbone.onnx", "layer.onnx",
+                                                    "model.json"]
+    assert (out / "model.json").stat().st_mtime_ns >= before
+
+
+def test_export_arguments_that_cannot_be_meant(tiny_checkpoint, tmp_path, capsys):
+    code, err = export_cli(capsys, tiny_checkpoint, "-o", tmp_path / "m", "--calibration",
+                           tmp_path / "scenes")
+    assert code == 2 and "only used with --quantize" in err
+    code, err = export_cli(capsys, tmp_path, "-o", tmp_path / "m")
+    assert code == 2 and "is a folder, expected a checkpoint file" in err
+    assert not (tmp_path / "m").exists()
