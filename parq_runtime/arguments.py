@@ -95,8 +95,9 @@ def floor_height(text: str):
         value = number(text)
     except argparse.ArgumentTypeError as e:
         raise argparse.ArgumentTypeError(f"{e}, or {FLOOR_OFF!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"{value} is not a finite height, or {FLOOR_OFF!r}")
+    if not math.isfinite(value) or abs(value) > 1e5:
+        raise argparse.ArgumentTypeError(f"{value} is not a height in metres (within 100 km "
+                                         f"of the origin), or {FLOOR_OFF!r}")
     return value
 
 

@@ -10,6 +10,7 @@ import sys
 from .arguments import (OneLineParser, floor_height, non_negative_float, positive_int, ray_ratio,
                         scene_nms, score)
 from .errors import ParqError
+from .files import os_error
 
 DEFAULT_MODEL = pathlib.Path(__file__).resolve().parents[1] / "models" / "parq-demo"
 
@@ -149,12 +150,13 @@ def check_outputs(args) -> None:
     paths = [p for p in (args.output, args.ply) if p is not None]
     for path in paths:
         files.check_writable(path)
-    if len(paths) == 2 and paths[0].absolute() == paths[1].absolute():
+    # resolved, so that a/../x and x (or a link to it) are seen to be the same path
+    if len(paths) == 2 and paths[0].resolve() == paths[1].resolve():
         raise ParqError(f"{paths[0]}: given for both -o and --ply")
     if args.vis is not None:
         visualize.check_output(args.vis)
         for path in paths:
-            if args.vis.absolute() == path.absolute():
+            if args.vis.resolve() == path.resolve():
                 raise ParqError(f"{path}: given for both --vis and a file output")
 
 
@@ -194,13 +196,14 @@ def run(args) -> int:
     threshold = detector.card.score_threshold if args.score_threshold is None \
         else args.score_threshold
     text = json.dumps(results.to_json(result, settings, detector.card, threshold), indent=1)
-    images = visualize.write(result, args.vis) if args.vis is not None else 0
-    if args.ply is not None:
-        ply.write(args.ply, result.fusion.boxes)
+    with files.staged_files() as stage:     # -o, --ply and --vis: all of them or none
+        if args.output is not None:
+            stage(args.output, text + "\n")
+        if args.ply is not None:
+            stage(args.ply, ply.ply_text(result.fusion.boxes))
+        images = visualize.write(result, args.vis) if args.vis is not None else 0
     if args.output is None:
         files.write_stdout(text)
-    else:
-        files.atomic_write(args.output, text + "\n")
     if not args.quiet:
         for note in capture.notes:      # after the run: an error stays a single line
             print(f"parq-run: note: {note}", file=sys.stderr)
@@ -229,6 +232,9 @@ def main(argv=None) -> int:
     except ParqError as e:
         print(f"parq-run: error: {e}", file=sys.stderr)
         return e.exit_code
+    except OSError as e:    # a path the checks could not foresee (permissions, /proc)
+        print(f"parq-run: error: {os_error(e)}", file=sys.stderr)
+        return ParqError.exit_code
     except KeyboardInterrupt:
         print("parq-run: interrupted", file=sys.stderr)
         return 130

@@ -24,6 +24,12 @@ def read_json(path):
         raise ParqError(f"{path}: not readable JSON ({e})") from None
 
 
+def os_error(e: OSError) -> str:
+    """One line for an OSError: the path it names and the system's reason."""
+    where = f"{e.filename}: " if e.filename is not None else ""
+    return f"{where}{e.strerror or e}"
+
+
 def write_stdout(text: str) -> None:
     """``text`` and a newline on stdout.  A reader that stops early (``| head``) closes the
     pipe: the output then ends quietly instead of with a traceback."""
@@ -50,17 +56,53 @@ def check_writable(path) -> pathlib.Path:
 
 def atomic_write(path, data) -> None:
     """Write bytes or text to a temporary file beside ``path``, then rename it into place."""
-    path = check_writable(path)
+    with staged_files() as stage:
+        stage(path, data)
+
+
+@contextlib.contextmanager
+def staged_files():
+    """``with staged_files() as stage: stage(path, data); ...`` writes each file to a
+    temporary file beside its path (bytes or text); when the block ends without error all of
+    them are renamed into place, and on any error all are removed: the outputs of one command
+    appear together or not at all.  An OSError becomes ParqError naming the path."""
+    staged = []
+
+    def stage(path, data) -> None:
+        path = check_writable(path)
+        staged.append((_write_beside(path, data), path))
+
+    try:
+        yield stage
+        for tmp, path in staged:
+            try:
+                os.replace(tmp, path)
+            except OSError as e:
+                raise ParqError(f"{path}: could not write ({e.strerror or e})") from None
+    finally:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
+
+
+def _write_beside(path: pathlib.Path, data) -> pathlib.Path:
+    """``data`` in a new temporary file in ``path``'s folder; returns its path."""
     mode = "wb" if isinstance(data, (bytes, bytearray)) else "w"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.absolute().parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.absolute().parent)
+    except OSError as e:
+        raise ParqError(f"{path}: cannot write there ({e.strerror or e})") from None
+    tmp = pathlib.Path(tmp)
     try:
         with os.fdopen(fd, mode) as f:
             f.write(data)
         os.chmod(tmp, 0o666 & ~umask())
-        os.replace(tmp, path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        raise ParqError(f"{path}: could not write ({e.strerror or e})") from None
     except BaseException:
-        pathlib.Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
+    return tmp
 
 
 @contextlib.contextmanager

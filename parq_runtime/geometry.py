@@ -46,6 +46,11 @@ def transform(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     return points_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
 
 
+# Metres a pose may lie from the world's origin: an Earth-centred frame fits, a value that
+# would overflow the float32 arithmetic downstream (or a pose in micrometres) does not.
+MAX_TRANSLATION = 1e8
+
+
 def check_rigid(T: np.ndarray, what: str = "pose", tol: float = 1e-3) -> None:
     """Raise ParqError unless T (..., 4, 4) holds finite rigid transforms (rotation with
     det +1, bottom row 0 0 0 1)."""
@@ -57,6 +62,9 @@ def check_rigid(T: np.ndarray, what: str = "pose", tol: float = 1e-3) -> None:
         where = what if len(flat) == 1 else f"{what} {i}"
         if not np.all(np.isfinite(M)):
             raise ParqError(f"{where}: holds NaN or infinite values")
+        if np.abs(M[:3, 3]).max() > MAX_TRANSLATION:
+            raise ParqError(f"{where}: translation {M[:3, 3].tolist()} is beyond "
+                            f"{MAX_TRANSLATION:.0e} m (wrong units?)")
         if np.abs(M[3] - (0, 0, 0, 1)).max() > tol:
             raise ParqError(f"{where}: bottom row is {M[3].tolist()}, not [0, 0, 0, 1]")
         R = M[:3, :3]

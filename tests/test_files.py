@@ -73,3 +73,39 @@ def test_read_json_one_line_errors(tmp_path):
         files.read_json(tmp_path / "bad.json")
     (tmp_path / "ok.json").write_text('{"a": 1}')
     assert files.read_json(tmp_path / "ok.json") == {"a": 1}
+
+
+def test_staged_files_appear_together_or_not_at_all(tmp_path):
+    a, b = tmp_path / "a.json", tmp_path / "b.ply"
+    with pytest.raises(ParqError, match="later step"):
+        with files.staged_files() as stage:
+            stage(a, "{}\n")
+            stage(b, b"ply\n")
+            raise ParqError("a later step failed")
+    assert list(tmp_path.iterdir()) == []       # neither output, no temporary file
+    with files.staged_files() as stage:
+        stage(a, "{}\n")
+        stage(b, b"ply\n")
+        assert not a.exists() and not b.exists()    # renamed into place only at the end
+    assert a.read_text() == "{}\n" and b.read_bytes() == b"ply\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.ply"]
+
+
+def test_staged_file_that_cannot_be_created_is_one_line(tmp_path, monkeypatch):
+    # what /proc does for root, whom the access check lets through: mkstemp itself fails
+    def refuse(*args, **kwargs):
+        raise FileNotFoundError(2, "No such file or directory")
+
+    first = tmp_path / "first.json"
+    with pytest.raises(ParqError, match="second.json: cannot write there"):
+        with files.staged_files() as stage:
+            stage(first, "{}")
+            monkeypatch.setattr(files.tempfile, "mkstemp", refuse)
+            stage(tmp_path / "second.json", "{}")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_os_error_is_one_line_naming_the_path():
+    e = PermissionError(13, "Permission denied", "scene/color")
+    assert files.os_error(e) == "scene/color: Permission denied"
+    assert files.os_error(OSError(28, "No space left on device")) == "No space left on device"

@@ -246,7 +246,8 @@ def test_bad_arguments(tiny_model, scannet_folder, tmp_path):
                          (["--ray-ratio", "inf"], "--ray-ratio"),
                          (["--scene-nms", 1.5], "--scene-nms"),
                          (["--scene-nms", "none"], "--scene-nms"),
-                         (["--floor", "low"], "--floor"), (["--floor", "nan"], "--floor")):
+                         (["--floor", "low"], "--floor"), (["--floor", "nan"], "--floor"),
+                         (["--floor", "1e308"], "--floor")):
         out = tmp_path / "x.json"
         _one_line_error(*run_cli(scannet_folder, "--model", tiny_model, "-o", out, *args),
                         needle)
@@ -436,3 +437,64 @@ def test_bad_input_in_every_format(tiny_model, tmp_path, capsys):
     # a corrupt frame found while detecting: no output of any kind
     (scene / "color" / "4.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")
     fails(scene, "4.png", "not a readable image")
+
+
+def test_poses_and_intrinsics_a_reader_must_refuse(tiny_model, tmp_path):
+    f = write_scannet(tmp_path / "plusinf")    # only -inf marks a lost frame in ScanNet
+    np.savetxt(f / "pose" / "4.txt", np.full((4, 4), np.inf))
+    _one_line_error(*run_cli(f, "--model", tiny_model), "4.txt", "infinite")
+    f = write_scannet(tmp_path / "far")
+    T = np.loadtxt(f / "pose" / "4.txt")
+    T[0, 3] = 1e300
+    np.savetxt(f / "pose" / "4.txt", T)
+    _one_line_error(*run_cli(f, "--model", tiny_model), "4.txt", "translation")
+    for name, (i, j, value) in {"row": (2, 0, 0.5), "lower": (1, 0, 5.0),
+                                "skew": (0, 1, 3.0)}.items():
+        f = write_scannet(tmp_path / name)
+        K = np.loadtxt(f / "intrinsic" / "intrinsic_color.txt")
+        K[i, j] = value
+        np.savetxt(f / "intrinsic" / "intrinsic_color.txt", K)
+        _one_line_error(*run_cli(f, "--model", tiny_model), "intrinsic_color.txt",
+                        "not pinhole")
+
+
+def test_outputs_named_twice_through_other_spellings_are_refused(tiny_model, scannet_folder,
+                                                                 tmp_path):
+    outputs = tmp_path / "outputs"
+    (outputs / "a").mkdir(parents=True)
+    _one_line_error(*run_cli(scannet_folder, "--model", tiny_model, "-o", outputs / "o.json",
+                             "--ply", outputs / "a" / ".." / "o.json"), "both -o and --ply")
+    _one_line_error(*run_cli(scannet_folder, "--model", tiny_model, "-o", outputs / "vv",
+                             "--vis", outputs / "a" / ".." / "vv"), "both --vis")
+    assert [p.name for p in outputs.iterdir()] == ["a"]
+
+
+def test_a_failed_output_leaves_none_of_the_others(tiny_model, scannet_folder, tmp_path,
+                                                    capsys, monkeypatch):
+    from parq_runtime import ply
+    from parq_runtime.errors import ParqError
+
+    def fail(boxes):
+        raise ParqError("o.ply: could not write (disk full)")
+
+    monkeypatch.setattr(ply, "ply_text", fail)
+    outputs = tmp_path / "outputs"
+    outputs.mkdir()
+    code, _, err = run_main(capsys, scannet_folder, "--model", tiny_model, "-q",
+                            "--max-snippets", 1, "-o", outputs / "o.json",
+                            "--ply", outputs / "o.ply", "--vis", outputs / "vis")
+    assert code == 2 and "disk full" in err and "Traceback" not in err
+    assert list(outputs.iterdir()) == []
+
+
+def test_an_os_error_no_check_foresaw_is_one_line(tiny_model, scannet_folder, capsys,
+                                                  monkeypatch):
+    from parq_runtime import readers
+
+    def unreadable(*args, **kwargs):     # what a folder without read permission gives
+        raise PermissionError(13, "Permission denied", f"{scannet_folder}/color")
+
+    monkeypatch.setattr(readers, "open_capture", unreadable)
+    code, out, err = run_main(capsys, scannet_folder, "--model", tiny_model)
+    assert code == 2 and out == ""
+    assert err.strip() == f"parq-run: error: {scannet_folder}/color: Permission denied"

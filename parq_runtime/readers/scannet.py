@@ -61,8 +61,11 @@ def read(path: pathlib.Path) -> Capture:
         raise ParqError(f"{intrinsic}: expected a 3x3 or 4x4 matrix, found {values.size} "
                         "numbers")
     K = values.reshape(3, 3) if values.size == 9 else values.reshape(4, 4)[:3, :3]
-    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1:
-        raise ParqError(f"{intrinsic}: not pinhole intrinsics (need fx, fy > 0 and K[2,2] = 1)")
+    # the runtime reads fx, fy, cx, cy: anything else must be the pinhole's zeros
+    if (not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0
+            or np.any(K[2] != (0, 0, 1)) or K[1, 0] != 0 or abs(K[0, 1]) > 1e-6 * K[0, 0]):
+        raise ParqError(f"{intrinsic}: not pinhole intrinsics (need fx, fy > 0, no skew and "
+                        f"last row 0 0 1; got {np.round(K, 4).tolist()})")
     colors = _index(path / "color", COLOR, "colour")
     poses = _index(path / "pose", POSE, "pose")
     if not colors:
@@ -81,7 +84,7 @@ def read(path: pathlib.Path) -> Capture:
     group = SizeGroup(source)
     for i in sorted(colors):
         T = read_matrix(poses[i], (4, 4), "pose")
-        if np.all(np.isinf(T[:3])):
+        if np.all(np.isneginf(T[:3])):     # ScanNet's mark of a lost frame; +inf is an error
             lost += 1
             continue
         geometry.check_rigid(T, str(poses[i]))
