@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import pathlib
+import reprlib
 import sys
 
 import numpy as np
@@ -35,35 +36,118 @@ from .boxes import Box
 from .errors import ParqError
 from .files import read_json
 from .iou import iou_matrix
+from .results import SCHEMA, VERSION
 
 THRESHOLDS = (0.25, 0.5, 0.7)
 BOXES_FORMAT = "parq-onnx-boxes"
+# |R^T R - I| a box's rotation may have (files round their numbers)
+ROTATION_TOL = 1e-3
 
 
 def load_ground_truth(path, seen_only: bool = False) -> tuple:
     """(boxes, up) from a boxes.json written by parq-synth (or by hand, same schema);
     ``seen_only``: only the boxes whose "visible" record says some frame shows them."""
     path = pathlib.Path(path)
-    data = read_json(path)
+    data = _read_json(path)
     if not isinstance(data, dict) or data.get("format") != BOXES_FORMAT:
         raise ParqError(f"{path}: not a ground-truth boxes.json (format {BOXES_FORMAT!r})")
+    records = data.get("boxes")
+    if not isinstance(records, list):
+        raise ParqError(f'{path}: no "boxes" list')
+    up = _floats(data.get("up", geometry.UP_Z), (3,))
+    if up is None or not 0 < np.linalg.norm(up) < np.inf:
+        raise ParqError(f'{path}: "up" must be three finite numbers, not all zero, got '
+                        f"{reprlib.repr(data['up'])}")
+    where = [f"{path}: box {i}" for i in range(len(records))]
+    boxes = [_box(b, w) for b, w in zip(records, where)]
+    if seen_only:
+        boxes = [b for b, r, w in zip(boxes, records, where) if _shown(r, w)]
+    return boxes, tuple(float(v) for v in up)
+
+
+def load_predictions(path) -> list:
+    """The scene boxes of a parq-run output JSON, as :class:`Box` objects."""
+    data = _read_json(path)
+    if not isinstance(data, dict) or data.get("schema") != SCHEMA:
+        raise ParqError(f"{path}: not a parq-run output (schema {SCHEMA!r} expected)")
+    if data.get("version") != VERSION:
+        raise ParqError(f"{path}: parq-run output version {data.get('version')}, expected "
+                        f"{VERSION}")
+    if not isinstance(data.get("scene"), dict):
+        raise ParqError(f'{path}: not a parq-run output (no "scene" section)')
+    records = data["scene"].get("boxes")
+    if not isinstance(records, list):
+        raise ParqError(f'{path}: "scene" has no "boxes" list')
+    return [_box(b, f"{path}: scene box {i}") for i, b in enumerate(records)]
+
+
+def _read_json(path):
+    """files.read_json, with a file nested too deeply for the parser refused as well."""
     try:
-        records = data["boxes"]
-        if seen_only:
-            records = [b for b in records if _shown(b, path)]
-        boxes = [Box.from_json(b) for b in records]
-        up = tuple(float(v) for v in data.get("up", geometry.UP_Z))
-    except (KeyError, TypeError, ValueError) as e:
-        raise ParqError(f"{path}: malformed box ({e})") from None
-    return boxes, up
+        return read_json(path)
+    except RecursionError:
+        raise ParqError(f"{path}: not readable JSON (nested too deeply)") from None
 
 
-def _shown(record, path) -> bool:
+def _box(record, where: str) -> Box:
+    """A :class:`Box` from one box record (parq-run's box or boxes.json's), checked first:
+    ParqError starting with ``where`` when a value is missing or not what the schema says."""
+    if not isinstance(record, dict):
+        raise ParqError(f"{where}: not a JSON object, got {reprlib.repr(record)}")
+    for key in ("label", "center", "size", "rotation"):
+        if key not in record:
+            raise ParqError(f'{where}: missing "{key}"')
+
+    def refuse(key, what):
+        raise ParqError(f"{where}: {key} must be {what}, got {reprlib.repr(record[key])}")
+
+    label = record["label"]
+    if isinstance(label, bool) or not isinstance(label, int) or label < 0:
+        refuse("label", "a class index (an integer, 0 or more)")
+    if not isinstance(record.get("class", ""), str):
+        refuse("class", "a class name (a string)")
+    center = _floats(record["center"], (3,))
+    if center is None:
+        refuse("center", "three finite numbers")
+    size = _floats(record["size"], (3,))
+    if size is None or size.min() <= 0:
+        refuse("size", "three positive finite numbers")
+    for key, v in (("center", center), ("size", size)):
+        if np.abs(v).max() > geometry.MAX_TRANSLATION:
+            raise ParqError(f"{where}: {key} {reprlib.repr(record[key])} is beyond "
+                            f"{geometry.MAX_TRANSLATION:.0e} m (wrong units?)")
+    R = _floats(record["rotation"], (3, 3))
+    if R is None or np.abs(R.T @ R - np.eye(3)).max() > ROTATION_TOL or np.linalg.det(R) < 0:
+        refuse("rotation", "a 3x3 rotation matrix (orthonormal, determinant +1)")
+    for key in ("score", "yaw"):
+        if key in record and _floats(record[key], ()) is None:
+            refuse(key, "a finite number")
+    return Box.from_json(record)
+
+
+def _floats(value, shape: tuple):
+    """``value`` as a float64 array of ``shape`` when it is numbers (not booleans) nested in
+    lists of that shape, all finite; None otherwise."""
+    def numbers(v, shape):
+        if not shape:
+            return isinstance(v, (int, float)) and not isinstance(v, bool)
+        return (isinstance(v, (list, tuple)) and len(v) == shape[0]
+                and all(numbers(x, shape[1:]) for x in v))
+    if not numbers(value, shape):
+        return None
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except OverflowError:   # an integer beyond the float range
+        return None
+    return a if np.all(np.isfinite(a)) else None
+
+
+def _shown(record, where: str) -> bool:
     """Whether a box record's "visible" entry says some frame shows it."""
-    visible = record.get("visible") if isinstance(record, dict) else None
+    visible = record.get("visible")
     frames = visible.get("frames") if isinstance(visible, dict) else None
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 0:
-        raise ParqError(f"{path}: a box has no valid \"visible\": {{\"frames\": N}} record, "
+        raise ParqError(f"{where}: no valid \"visible\": {{\"frames\": N}} record, "
                         "which --seen-only needs (parq-synth writes one per box; scenes it "
                         "generated before that have none: generate the scene again)")
     return frames > 0
@@ -158,8 +242,6 @@ def format_table(metrics: dict) -> str:
 
 
 def main(argv=None) -> int:
-    from .results import load_scene_boxes
-
     from .arguments import OneLineParser
 
     p = OneLineParser(
@@ -177,7 +259,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     try:
         truth, up = load_ground_truth(args.ground_truth, seen_only=args.seen_only)
-        predictions = load_scene_boxes(args.predictions)
+        predictions = load_predictions(args.predictions)
         metrics = evaluate([(predictions, truth, up)], classes_of(predictions, truth))
     except ParqError as e:
         print(f"parq-eval: error: {e}", file=sys.stderr)

@@ -25,9 +25,6 @@ from __future__ import annotations
 import numpy as np
 
 from . import __version__
-from .boxes import Box
-from .errors import ParqError
-from .files import read_json
 
 SCHEMA = "parq-onnx/detections"
 VERSION = 1
@@ -69,20 +66,6 @@ def to_json(scene, settings, card, score_threshold: float) -> dict:
         "scene": {"boxes": fused},
         "seconds": round(scene.seconds, 4),
     }
-
-
-def load_scene_boxes(path, classes=None) -> list:
-    """Scene boxes of a parq-run JSON file, as :class:`Box` objects."""
-    data = read_json(path)
-    if not isinstance(data, dict) or data.get("schema") != SCHEMA:
-        raise ParqError(f"{path}: not a parq-run output (schema {SCHEMA!r} expected)")
-    if data.get("version") != VERSION:
-        raise ParqError(f"{path}: parq-run output version {data.get('version')}, expected "
-                        f"{VERSION}")
-    try:
-        return [Box.from_json(b, classes) for b in data["scene"]["boxes"]]
-    except (KeyError, TypeError, ValueError) as e:
-        raise ParqError(f"{path}: malformed box ({e})") from None
 
 
 def summary_lines(boxes: list, limit: int = 30) -> list:

@@ -352,3 +352,113 @@ def test_parq_eval_seen_only_drops_the_boxes_no_frame_shows(tmp_path):
     assert p.returncode == 2 and "Traceback" not in p.stderr
     assert len(p.stderr.strip().splitlines()) == 1 and "visible" in p.stderr, p.stderr
     assert scores()["ground_truth"] == 2                    # without the flag, no record needed
+
+
+def eval_files(tmp_path, capsys, pred_boxes=None, gt_boxes=None, pred=None, gt=None):
+    """parq-eval's exit code and stderr lines on files made of these box records (or whole
+    documents ``pred`` / ``gt``, or raw text when a document is a str)."""
+    from parq_runtime.evaluation import main
+    if pred is None:
+        pred = {"schema": "parq-onnx/detections", "version": 1, "scene": {"boxes": pred_boxes
+                if pred_boxes is not None else [box([0, 0, 0.5]).to_json()]}}
+    if gt is None:
+        gt = {"format": "parq-onnx-boxes", "version": 1, "frame": "world", "up": [0, 0, 1],
+              "boxes": gt_boxes if gt_boxes is not None else [box([0, 0, 0.5]).to_json()]}
+    for name, doc in (("pred.json", pred), ("boxes.json", gt)):
+        (tmp_path / name).write_text(doc if isinstance(doc, str) else json.dumps(doc))
+    capsys.readouterr()
+    rc = main([str(tmp_path / "pred.json"), str(tmp_path / "boxes.json"), "--json"])
+    return rc, capsys.readouterr().err.strip().splitlines()
+
+
+def with_key(key, value):
+    """Two box records, the second's ``key`` set to ``value`` (deleted when value is ...)."""
+    records = [box([0, 0, 0.5]).to_json(), box([2, 0, 0.5]).to_json()]
+    if value is ...:
+        del records[1][key]
+    else:
+        records[1][key] = value
+    return records
+
+
+NAN, INF = float("nan"), float("inf")
+BAD_BOXES = [("class", 5, "class must be"), ("class", [1], "class must be"),
+             ("label", ..., 'missing "label"'), ("label", True, "label must be"),
+             ("label", 1.5, "label must be"), ("center", ..., 'missing "center"'),
+             ("center", [NAN, 0, 0.5], "center must be three finite numbers"),
+             ("center", [1, 2], "center must be three finite numbers"),
+             ("center", ["1", "2", "3"], "center must be three finite numbers"),
+             ("center", [1e300, 0, 0], "center [1e+300, 0, 0] is beyond 1e+08 m"),
+             ("size", [-1.9, -0.7, -0.9], "size must be three positive finite numbers, got "
+                                          "[-1.9, -0.7, -0.9]"),
+             ("size", [1, 0, 1], "size must be three positive"),
+             ("size", [1, INF, 1], "size must be three positive"),
+             ("rotation", 1, "rotation must be a 3x3 rotation"),
+             ("rotation", [[1, 0], [0, 1]], "rotation must be a 3x3 rotation"),
+             ("rotation", (2 * np.eye(3)).tolist(), "rotation must be a 3x3 rotation"),
+             ("rotation", np.diag([1.0, 1, -1]).tolist(), "rotation must be a 3x3 rotation"),
+             ("score", "high", "score must be a finite number"),
+             ("score", NAN, "score must be a finite number"),
+             ("yaw", None, "yaw must be a finite number")]
+
+
+@pytest.mark.parametrize("key, value, message", BAD_BOXES)
+@pytest.mark.parametrize("side", ["pred", "gt"])
+def test_parq_eval_refuses_a_bad_box_in_one_line(tmp_path, capsys, side, key, value, message):
+    """A bad box in either file: exit 2 and one line naming the file, the box and the value
+    that is wrong; no traceback, no scores."""
+    if side == "pred":
+        rc, err = eval_files(tmp_path, capsys, pred_boxes=with_key(key, value))
+        where = "pred.json: scene box 1: "
+    else:
+        rc, err = eval_files(tmp_path, capsys, gt_boxes=with_key(key, value))
+        where = "boxes.json: box 1: "
+    assert rc == 2 and len(err) == 1, err
+    assert where + message in err[0], err
+
+
+@pytest.mark.parametrize("gt, pred, message", [
+    ({"up": [0, 1]}, None, 'boxes.json: "up" must be three finite numbers'),
+    ({"up": [0, 0, 0]}, None, 'boxes.json: "up" must be three finite numbers, not all zero'),
+    ({"up": [0, NAN, 1]}, None, 'boxes.json: "up" must be three finite numbers'),
+    ({"boxes": {}}, None, 'boxes.json: no "boxes" list'),
+    ({"boxes": ...}, None, 'boxes.json: no "boxes" list'),
+    ({"boxes": [1]}, None, "boxes.json: box 0: not a JSON object"),
+    (None, {"scene": ...}, 'pred.json: not a parq-run output (no "scene" section)'),
+    (None, {"scene": {"boxes": {}}}, 'pred.json: "scene" has no "boxes" list'),
+])
+def test_parq_eval_refuses_a_bad_file_in_one_line(tmp_path, capsys, gt, pred, message):
+    gt_doc = {"format": "parq-onnx-boxes", "version": 1, "frame": "world", "up": [0, 0, 1],
+              "boxes": [box([0, 0, 0.5]).to_json()]}
+    pred_doc = {"schema": "parq-onnx/detections", "version": 1,
+                "scene": {"boxes": [box([0, 0, 0.5]).to_json()]}}
+    for doc, change in ((gt_doc, gt), (pred_doc, pred)):
+        for k, v in (change or {}).items():
+            if v is ...:
+                del doc[k]
+            else:
+                doc[k] = v
+    rc, err = eval_files(tmp_path, capsys, pred=pred_doc, gt=gt_doc)
+    assert rc == 2 and len(err) == 1 and message in err[0], err
+
+
+@pytest.mark.parametrize("side", ["pred", "gt"])
+def test_parq_eval_refuses_json_nested_too_deeply(tmp_path, capsys, side):
+    deep = "[" * 100000 + "]" * 100000
+    rc, err = eval_files(tmp_path, capsys, **{side: deep})
+    name = "pred.json" if side == "pred" else "boxes.json"
+    assert rc == 2 and len(err) == 1 and f"{name}: not readable JSON" in err[0], err
+
+
+def test_parq_eval_takes_rotations_off_by_rounding_and_scores_as_before(tmp_path, capsys):
+    """Rotations a little off orthonormal (files round their numbers) are accepted; the
+    scores are those of the boxes as given."""
+    rounded = box([0, 0, 0.5], yaw=0.3).to_json()
+    rounded["rotation"] = (np.asarray(rounded["rotation"]) + 2e-4).tolist()
+    rc, err = eval_files(tmp_path, capsys, pred_boxes=[rounded],
+                         gt_boxes=[box([0, 0, 0.5], yaw=0.3).to_json(),
+                                   box([2, 0, 0.5]).to_json()])
+    assert rc == 0 and not err
+    twice = (2 * np.eye(3)).tolist()
+    rc, err = eval_files(tmp_path, capsys, pred_boxes=[dict(rounded, rotation=twice)])
+    assert rc == 2 and "scene box 0: rotation must be" in err[0], err
