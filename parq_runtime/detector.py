@@ -128,6 +128,8 @@ class Detector:
                                         spinning=False)
         self.layer = sessions.create(self.card.graph_path("layer"), threads, providers,
                                      spinning)
+        for role, session in (("backbone", self.backbone), ("layer", self.layer)):
+            model_card.check_graph(self.card, role, session)    # e.g. files swapped
         self.classes = self.card.classes
         self.device = sessions.device(self.backbone)     # (type, id)
         self.device_binding = (self.device[0] != "cpu") if device_binding is None \

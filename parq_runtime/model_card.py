@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import pathlib
 from dataclasses import dataclass
 
 import numpy as np
 
-from . import fusion, preprocess
+from . import fusion, loop, preprocess
 from .errors import ParqError
 
 CARD_FORMAT = "parq-onnx-model"
@@ -204,9 +205,137 @@ def _sha256(path: pathlib.Path) -> str:
     return h.hexdigest()
 
 
+def _shown(value) -> str:
+    """A value for a message, cut short (a card's lists can be long)."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:36] + " ..."
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) \
+        and math.isfinite(value)
+
+
+def _section(path, raw: dict, key: str) -> dict:
+    value = raw[key]
+    if not isinstance(value, dict):
+        raise ParqError(f"{path}: {key} must be an object ({{...}}), got {_shown(value)}")
+    return value
+
+
+def _entry(path, section: dict, where: str, key: str):
+    if key not in section:
+        raise ParqError(f"{path}: model card lacks {where}.{key}")
+    return section[key]
+
+
+def _integer(path, section: dict, where: str, key: str, low: int, high: int | None = None):
+    value = _entry(path, section, where, key)
+    if isinstance(value, bool) or not isinstance(value, int) or value < low \
+            or (high is not None and value > high):
+        span = f"from {low} to {high}" if high is not None else f">= {low}"
+        raise ParqError(f"{path}: {where}.{key} must be an integer {span}, got {_shown(value)}")
+    return value
+
+
+def _number(path, section: dict, where: str, key: str, span: str, inside) -> float:
+    value = _entry(path, section, where, key)
+    if not _is_number(value) or not inside(value):
+        raise ParqError(f"{path}: {where}.{key} must be a number in {span}, got "
+                        f"{_shown(value)}")
+    return value
+
+
+def _ranges(path, section: dict, where: str, key: str, names: str) -> list:
+    """``key``: [min, max, min, max, ...] numbers, each min below its max."""
+    value = _entry(path, section, where, key)
+    count = len(names.split(", "))
+    if not (isinstance(value, list) and len(value) == count and all(map(_is_number, value))
+            and all(lo < hi for lo, hi in zip(value[0::2], value[1::2]))):
+        raise ParqError(f"{path}: {where}.{key} must be {count} numbers [{names}], each min "
+                        f"below its max, got {_shown(value)}")
+    return value
+
+
+def _check_graphs(path, folder: pathlib.Path, raw: dict, check_hashes: bool) -> None:
+    graphs = _section(path, raw, "graphs")
+    for role in ("backbone", "layer"):
+        entry = graphs.get(role)
+        if not isinstance(entry, dict) or "file" not in entry:
+            raise ParqError(f"{path}: model card names no {role} graph")
+        name = entry["file"]
+        if not isinstance(name, str) or not name.strip():
+            raise ParqError(f"{path}: graphs.{role}.file must be a file name, got "
+                            f"{_shown(name)}")
+        graph = folder / name
+        if not graph.exists():
+            raise ParqError(f"{graph}: missing from the model folder")
+        if not graph.is_file():
+            raise ParqError(f"{path}: graphs.{role}.file {name!r} is not a file in the model "
+                            "folder")
+        digest = entry.get("sha256")
+        if digest is not None and not isinstance(digest, str):
+            raise ParqError(f"{path}: graphs.{role}.sha256 must be a string (the file's "
+                            f"sha256), got {_shown(digest)}")
+        if check_hashes and digest and _sha256(graph) != digest:
+            raise ParqError(f"{graph}: does not match the model card (sha256 differs; the file "
+                            "was changed or comes from another export)")
+
+
+def _check_sizes(path, raw: dict) -> None:
+    """classes, mean_sizes, image, feature, decoder and reference_points."""
+    classes = raw["classes"]
+    if not (isinstance(classes, list) and classes and all(isinstance(c, str) for c in classes)):
+        raise ParqError(f"{path}: classes must be a list of class names, got {_shown(classes)}")
+    sizes = raw["mean_sizes"]
+    if not (isinstance(sizes, list) and all(
+            isinstance(s, list) and len(s) == 3 and all(_is_number(v) and v > 0 for v in s)
+            for s in sizes)):
+        raise ParqError(f"{path}: mean_sizes must be a list of [x, y, z] sizes > 0, got "
+                        f"{_shown(sizes)}")
+    if len(sizes) != len(classes) + 1:
+        raise ParqError(f"{path}: {len(sizes)} mean sizes for {len(classes)} classes")
+    image = _section(path, raw, "image")
+    width = _integer(path, image, "image", "width", 16, 4096)
+    height = _integer(path, image, "image", "height", 16, 4096)
+    if image.get("filter", preprocess.AUTHORS_FILTER) not in preprocess.FILTERS:
+        raise ParqError(f"{path}: image.filter must be one of {', '.join(preprocess.FILTERS)} "
+                        f"(how frames are resized to the network size), got "
+                        f"{image.get('filter')!r}")
+    feature = _section(path, raw, "feature")
+    stride = _integer(path, feature, "feature", "stride", 1, 64)
+    for key, size in (("width", width), ("height", height)):
+        value = _entry(path, feature, "feature", key)
+        if isinstance(value, bool) or value != size // stride:
+            raise ParqError(f"{path}: feature.{key} must be image.{key} / feature.stride = "
+                            f"{size // stride}, got {_shown(value)}")
+    channels = _integer(path, feature, "feature", "channels", 4)
+    if channels % 4:
+        raise ParqError(f"{path}: feature.channels must be a multiple of 4, got {channels}")
+    decoder = _section(path, raw, "decoder")
+    _ranges(path, decoder, "decoder", "scale", "xmin, xmax, ymin, ymax, zmin, zmax")
+    heads = _integer(path, decoder, "decoder", "heads", 1, channels)
+    if channels % heads:
+        raise ParqError(f"{path}: decoder.heads must divide feature.channels ({channels}), "
+                        f"got {heads}")
+    _integer(path, decoder, "decoder", "iterations", 1)
+    points = raw["reference_points"]
+    if not isinstance(points, list) or not points:
+        raise ParqError(f"{path}: reference_points must be a non-empty list of [x, y, z] "
+                        f"points in [0, 1], got {_shown(points)}")
+    for i, point in enumerate(points):
+        if not (isinstance(point, list) and len(point) == 3
+                and all(_is_number(v) and 0.0 <= v <= 1.0 for v in point)):
+            raise ParqError(f"{path}: reference_points[{i}] must be [x, y, z] in [0, 1] "
+                            f"(normalised), got {_shown(point)}")
+
+
 def load(folder, check_hashes: bool = True) -> ModelCard:
     """Read and validate ``folder/model.json``; raises ParqError saying what is wrong."""
     folder = pathlib.Path(folder)
+    if folder.is_file():
+        raise ParqError(f"{folder}: is a file, not a model folder (give the folder that holds "
+                        "model.json, backbone.onnx and layer.onnx)")
     if not folder.is_dir():
         raise ParqError(f"{folder}: model folder not found")
     path = folder / "model.json"
@@ -219,33 +348,38 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
         raise ParqError(f"{path}: not valid JSON ({e})") from None
     if not isinstance(raw, dict) or raw.get("format") != CARD_FORMAT:
         raise ParqError(f"{path}: not a parq-onnx model card")
-    if raw.get("format_version") != CARD_VERSION:
+    version = raw.get("format_version")
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise ParqError(f"{path}: format_version must be an integer (this version reads "
+                        f"format {CARD_VERSION}), got {_shown(version)}")
+    if version != CARD_VERSION:
         raise ParqError(f"{path}: written by parq-onnx {raw.get('package_version', '?')} in "
-                        f"model format {raw.get('format_version')}; this version reads format "
+                        f"model format {version}; this version reads format "
                         f"{CARD_VERSION}: export the checkpoint again")
     missing = [k for k in REQUIRED if k not in raw]
     if missing:
         raise ParqError(f"{path}: model card lacks {', '.join(missing)}")
+    try:
+        return _checked(folder, path, raw, check_hashes)
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError,
+            ZeroDivisionError) as e:  # a case the checks did not foresee
+        raise ParqError(f"{path}: not a valid model card ({type(e).__name__}: {e})") from None
+
+
+def _checked(folder: pathlib.Path, path: pathlib.Path, raw: dict,
+             check_hashes: bool) -> ModelCard:
     card = ModelCard(folder, raw)
-    for role in ("backbone", "layer"):
-        entry = raw["graphs"].get(role)
-        if not isinstance(entry, dict) or "file" not in entry:
-            raise ParqError(f"{path}: model card names no {role} graph")
-        graph = card.graph_path(role)
-        if not graph.is_file():
-            raise ParqError(f"{graph}: missing from the model folder")
-        if check_hashes and entry.get("sha256") and _sha256(graph) != entry["sha256"]:
-            raise ParqError(f"{graph}: does not match the model card (sha256 differs; the file "
-                            "was changed or comes from another export)")
+    _check_graphs(path, folder, raw, check_hashes)
+    _check_sizes(path, raw)
     order = raw.get("query_order") or []
     if not (isinstance(order, list) and all(isinstance(i, int) for i in order)
             and (not order or sorted(order) == list(range(len(raw["reference_points"]))))):
         raise ParqError(f"{path}: query_order must list each of the "
                         f"{len(raw['reference_points'])} learned queries once")
-    if len(card.mean_sizes) != len(card.classes) + 1:
-        raise ParqError(f"{path}: {len(card.mean_sizes)} mean sizes for {len(card.classes)} "
-                        "classes")
-    post = raw["postprocess"] if isinstance(raw["postprocess"], dict) else {}
+    post = _section(path, raw, "postprocess")
+    _number(path, post, "postprocess", "score_threshold", "[0, 1)", lambda v: 0 <= v < 1)
+    _number(path, post, "postprocess", "nms_iou", "[0, 1]", lambda v: 0 <= v <= 1)
+    _ranges(path, post, "postprocess", "eval_region", "xmin, xmax, zmin, zmax")
     found = fusion.problems(post.get("fusion", fusion.AUTHORS_MODE),
                             post.get("min_support", fusion.AUTHORS_MIN_SUPPORT),
                             post.get("ray_ratio", fusion.RAY_RATIO), post.get("scene_nms"),
@@ -254,18 +388,21 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
                             post.get("labels", fusion.AUTHORS_LABELS))
     if found:
         raise ParqError(f"{path}: postprocess: {'; '.join(found)}")
-    image = raw["image"] if isinstance(raw["image"], dict) else {}
-    if image.get("filter", preprocess.AUTHORS_FILTER) not in preprocess.FILTERS:
-        raise ParqError(f"{path}: image.filter must be one of {', '.join(preprocess.FILTERS)} "
-                        f"(how frames are resized to the network size), got "
-                        f"{image.get('filter')!r}")
+    limits = _section(path, raw, "limits")
+    _integer(path, limits, "limits", "max_views", 1)
+    max_queries = _integer(path, limits, "limits", "max_queries", 1)
+    checkpoint = raw.get("checkpoint")
+    digest = checkpoint.get("sha256") if isinstance(checkpoint, dict) else None
+    if not isinstance(digest, str):     # parq-run's results name the checkpoint by it
+        raise ParqError(f"{path}: checkpoint.sha256 must be a string (the exported "
+                        f"checkpoint's sha256), got {_shown(digest)}")
     snippets = raw.get("snippets", {})
     gap = snippets.get("gap", 1) if isinstance(snippets, dict) else None
     if isinstance(gap, bool) or not isinstance(gap, int) or gap < 1:
         raise ParqError(f"{path}: snippets.gap must be an integer >= 1 (keyframes between a "
                         f"snippet's views), got {gap!r}")
     run = raw.get("run", DEFAULT_RUN)
-    for key, limit in (("iters", MAX_ITERATIONS), ("queries", raw["limits"]["max_queries"])):
+    for key, limit in (("iters", MAX_ITERATIONS), ("queries", max_queries)):
         value = run.get(key, DEFAULT_RUN[key]) if isinstance(run, dict) else None
         if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= limit:
             raise ParqError(f"{path}: run.{key} must be an integer from 1 to {limit} (the "
@@ -274,4 +411,43 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
     if not isinstance(value, bool):
         raise ParqError(f"{path}: run.mirror must be true or false (whether the default run "
                         f"adds mirror-image runs), got {value!r}")
+    for name, member in vars(ModelCard).items():   # every property reads: none fails later
+        if isinstance(member, property):
+            getattr(card, name)
     return card
+
+
+# The inputs the runtime feeds each graph (Detector.encode, parq_runtime.loop.run).
+GRAPH_INPUTS = {
+    "backbone": ("images",) + tuple(f"cached_{n}" for n in loop.FACTOR_NAMES[:4])
+    + ("camera", "T_local_camera", "key_value"),
+    "layer": loop.QUERY_NAMES + ("reference_points",) + loop.OPERAND_NAMES + loop.FACTOR_NAMES
+    + ("key_value",),
+}
+
+
+def check_graph(card: ModelCard, role: str, session) -> None:
+    """ParqError unless ``session``, the card's ``role`` graph, takes the inputs the runtime
+    feeds that graph at the card's sizes (a graph file swapped for another, or a card from
+    another export, would otherwise fail at its first run)."""
+    path = card.graph_path(role)
+    shapes = {i.name: i.shape for i in session.get_inputs()}
+    if sorted(shapes) != sorted(GRAPH_INPUTS[role]):
+        other = "layer" if role == "backbone" else "backbone"
+        if sorted(shapes) == sorted(GRAPH_INPUTS[other]):
+            raise ParqError(f"{path}: not a PARQ {role} graph (it takes the {other} graph's "
+                            "inputs; are the graph files swapped?)")
+        raise ParqError(f"{path}: not a PARQ {role} graph (inputs {', '.join(shapes)})")
+    (w, h), levels = card.image_size, level_sizes(card.feature_size)
+    expected = {"images": (None, h, w, 3)} if role == "backbone" else {}
+    prefix = "cached_" if role == "backbone" else ""
+    expected.update({f"{prefix}{n}": (None, lh, lw, card.feature_dim // 4)
+                     for n, (lh, lw) in zip(loop.FACTOR_NAMES[:4], levels)})
+    for name, want in expected.items():
+        got = shapes[name] or want      # rank unknown: nothing to compare
+        if len(got) != len(want) or any(isinstance(g, int) and e is not None and g != e
+                                        for g, e in zip(got, want)):
+            shown = ", ".join("?" if e is None else str(e) for e in want)
+            raise ParqError(f"{path}: input {name} has shape {got}, the model card's image "
+                            f"and feature sizes give ({shown}); the card and graph do not "
+                            "belong together")

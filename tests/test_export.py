@@ -160,6 +160,117 @@ def test_run_setting_is_written_to_the_card_and_checked(tiny_model, tmp_path):
         tiny_config().replace(run_mirror="no")
 
 
+def _without(section: dict, key: str) -> dict:
+    return {k: v for k, v in section.items() if k != key}
+
+
+MALFORMED_CARDS = {   # a change to the tiny model's card -> what the refusal says
+    "missing key": (lambda c: dict(c, image=_without(c["image"], "width")),
+                    "model card lacks image.width"),
+    "empty section": (lambda c: dict(c, limits={}), "model card lacks limits.max_views"),
+    "missing threshold": (lambda c: dict(c, postprocess=_without(c["postprocess"], "nms_iou")),
+                          "model card lacks postprocess.nms_iou"),
+    "section not an object": (lambda c: dict(c, graphs="x"), "graphs must be an object"),
+    "graph file not a name": (
+        lambda c: dict(c, graphs=dict(c["graphs"], backbone=dict(c["graphs"]["backbone"],
+                                                                 file=None))),
+        "graphs.backbone.file must be a file name, got None"),
+    "graph file a folder": (
+        lambda c: dict(c, graphs=dict(c["graphs"], layer=dict(c["graphs"]["layer"], file="."))),
+        "graphs.layer.file '.' is not a file in the model folder"),
+    "width not a number": (lambda c: dict(c, image=dict(c["image"], width="abc")),
+                           "image.width must be an integer from 16 to 4096, got 'abc'"),
+    "width zero": (lambda c: dict(c, image=dict(c["image"], width=0)),
+                   "image.width must be an integer from 16 to 4096, got 0"),
+    "width huge": (lambda c: dict(c, image=dict(c["image"], width=100000)),
+                   "image.width must be an integer from 16 to 4096, got 100000"),
+    "stride zero": (lambda c: dict(c, feature=dict(c["feature"], stride=0)),
+                    "feature.stride must be an integer from 1 to 64, got 0"),
+    "no heads": (lambda c: dict(c, decoder=dict(c["decoder"], heads=0)),
+                 "decoder.heads must be an integer from 1 to"),
+    "short decoder scale": (lambda c: dict(c, decoder=dict(c["decoder"], scale=[1, 2])),
+                            "decoder.scale must be 6 numbers"),
+    "threshold a word": (lambda c: dict(c, postprocess=dict(c["postprocess"],
+                                                            score_threshold="high")),
+                         "postprocess.score_threshold must be a number in [0, 1), got 'high'"),
+    "short region": (lambda c: dict(c, postprocess=dict(c["postprocess"], eval_region=[1, 2])),
+                     "postprocess.eval_region must be 4 numbers"),
+    "negative limit": (lambda c: dict(c, limits=dict(c["limits"], max_queries=-5)),
+                       "limits.max_queries must be an integer >= 1, got -5"),
+    "ragged mean sizes": (lambda c: dict(c, mean_sizes=[[1.0, 1.0]] + c["mean_sizes"][1:]),
+                          "mean_sizes must be a list of [x, y, z] sizes > 0"),
+    "format version a string": (lambda c: dict(c, format_version=str(c["format_version"])),
+                                "format_version must be an integer"),
+    "reference points a number": (lambda c: dict(c, reference_points=5),
+                                  "reference_points must be a non-empty list"),
+    "no reference points": (lambda c: dict(c, reference_points=[], query_order=[]),
+                            "reference_points must be a non-empty list"),
+    "2-D reference points": (lambda c: dict(c, reference_points=[p[:2] for p in
+                                                                 c["reference_points"]]),
+                             "reference_points[0] must be [x, y, z] in [0, 1]"),
+}
+
+
+@pytest.mark.parametrize("case", MALFORMED_CARDS)
+def test_malformed_card_is_refused_naming_the_key(tiny_model, tmp_path, case):
+    """A model.json with a key missing, of the wrong type or out of range is refused when the
+    folder is opened, naming the file and the key, not with a Python error later (or no boxes
+    at all, as a decoder scale of the wrong length gave)."""
+    change, message = MALFORMED_CARDS[case]
+    card = json.loads((tiny_model / "model.json").read_text())
+    other = model_with_card(tiny_model, tmp_path / "other", change(card))
+    with pytest.raises(ParqError) as refused:
+        Detector(other)
+    assert str(refused.value).startswith(f"{other / 'model.json'}: ")
+    assert message in str(refused.value)
+
+
+@pytest.mark.parametrize("files, card_change, message", [
+    (("layer.onnx", "backbone.onnx"), {}, "backbone.onnx: not a PARQ backbone graph"),
+    (("layer.onnx", "layer.onnx"), {}, "backbone.onnx: not a PARQ backbone graph"),
+    (("backbone.onnx", "backbone.onnx"), {}, "layer.onnx: not a PARQ layer graph"),
+    (("backbone.onnx", "layer.onnx"), {"image": 128, "feature": 32},
+     "backbone.onnx: input images has shape"),
+], ids=["swapped", "layer twice", "backbone twice", "other image size"])
+def test_graph_files_that_do_not_fit_the_card_are_named(tiny_model, tmp_path, files,
+                                                        card_change, message):
+    """Without checksums in the card, graph files swapped (or one copied over the other), or a
+    card whose image size is not the graphs', are refused when the sessions are created,
+    naming the file, not at the first run."""
+    card = json.loads((tiny_model / "model.json").read_text())
+    for role in ("backbone", "layer"):
+        del card["graphs"][role]["sha256"]
+    for section, width in card_change.items():
+        card[section]["width"] = width
+    folder = tmp_path / "model"
+    folder.mkdir()
+    for name, source in zip(("backbone.onnx", "layer.onnx"), files):
+        (folder / name).write_bytes((tiny_model / source).read_bytes())
+    (folder / "model.json").write_text(json.dumps(card))
+    with pytest.raises(ParqError, match=message):
+        Detector(folder)
+
+
+def test_parq_run_says_in_one_line_what_is_wrong_with_the_model_folder(tiny_model,
+                                                                       scannet_folder,
+                                                                       tmp_path, capsys):
+    """--model given the model.json instead of its folder, or a folder whose card lacks a key:
+    one line naming the path and the problem, exit status 2, no traceback."""
+    from parq_runtime import cli
+
+    card = json.loads((tiny_model / "model.json").read_text())
+    broken = model_with_card(tiny_model, tmp_path / "broken", dict(card, feature={}))
+    for model, needle in ((tiny_model / "model.json", "model.json: is a file, not a model "
+                                                      "folder"),
+                          (broken, "model.json: model card lacks feature.stride")):
+        code = cli.main([str(scannet_folder), "--model", str(model), "-o",
+                         str(tmp_path / "out.json"), "-q"])
+        err = capsys.readouterr().err
+        assert code == 2 and len(err.strip().splitlines()) == 1, err
+        assert needle in err, err
+        assert not (tmp_path / "out.json").exists()
+
+
 def test_views_resized_in_parallel_equal_one_at_a_time(tiny_model):
     """The thread pool that resizes a snippet's views changes nothing: the same images and
     cameras as one view at a time, and a bad view is still named (the first in view order)."""
