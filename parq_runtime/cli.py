@@ -34,7 +34,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--up", choices=CHOICES, default=None,
                    help="the world's up axis (default: the format's convention, +z for "
                         "ScanNet, ARKitScenes and the demo layout; estimated from the cameras "
-                        "for COLMAP and nerfstudio); auto estimates it from the cameras")
+                        "for COLMAP and nerfstudio); auto estimates it from the cameras. "
+                        "Write a negative axis with '=': --up=-y")
     p.add_argument("--model", type=pathlib.Path,
                    default=pathlib.Path(os.environ.get("PARQ_MODEL", DEFAULT_MODEL)),
                    help="model folder written by parq-export (default: $PARQ_MODEL or "

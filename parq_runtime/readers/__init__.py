@@ -218,8 +218,8 @@ def image_size(value_w, value_h, where: str) -> tuple:
         if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
             raise ParqError(f"{where}: image {name} {v!r} is not a number")
         if not math.isfinite(v) or v != int(v) or not 1 <= v <= 100_000:
-            raise ParqError(f"{where}: image {name} {v!r} is not a whole number of pixels "
-                            "(1 to 100000)")
+            raise ParqError(f"{where}: image {name} {float(v):g} is not a whole number of "
+                            "pixels (1 to 100000)")
         out.append(int(v))
     return tuple(out)
 
