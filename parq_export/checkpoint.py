@@ -23,6 +23,7 @@ is dropped.  FPN keys are accepted in torchvision's new (``inner_blocks.0.0.weig
 from __future__ import annotations
 
 import hashlib
+import io
 import pathlib
 import pickle
 import re
@@ -30,6 +31,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from parq_runtime import files
 from parq_runtime.errors import ParqError
 
 from .config import PARQConfig, SCANNET_CLASSES, SCANNET_MEAN_SIZES
@@ -311,9 +313,14 @@ def _few(items, n=6) -> str:
 
 
 def save(path, model: PARQ, metadata: dict | None = None) -> None:
-    """Write this package's checkpoint format (loadable with weights_only=True)."""
+    """Write this package's checkpoint format (loadable with weights_only=True), whole or not
+    at all: serialised in memory, then written to a temporary file renamed into place, so a
+    run stopped while it writes leaves no partial checkpoint and an earlier one whole
+    (ParqError naming the path when it cannot be written)."""
+    buffer = io.BytesIO()
     torch.save({"format": FORMAT, "format_version": FORMAT_VERSION,
                 "config": model.config.to_dict(),
                 "state_dict": {k: v.detach().cpu().contiguous()
                                for k, v in model.state_dict().items()},
-                "metadata": dict(metadata or {})}, str(path))
+                "metadata": dict(metadata or {})}, buffer)
+    files.atomic_write(path, buffer.getvalue())

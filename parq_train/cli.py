@@ -14,12 +14,14 @@ import argparse
 import datetime
 import hashlib
 import json
+import math
 import os
 import pathlib
 import sys
+import tempfile
 import time
 
-from parq_runtime.arguments import (OneLineParser, integer, non_negative_float, non_negative_int,
+from parq_runtime.arguments import (OneLineParser, non_negative_float, non_negative_int, number,
                                     positive_float, positive_int)
 from parq_runtime.errors import ParqError
 
@@ -29,6 +31,58 @@ from parq_runtime.errors import ParqError
 TRAIN_SEED = 1000
 VALIDATION_SEED = 2000
 HELD_OUT_SEED = 3000
+
+VIEWS = 3                   # views of a training snippet (data.load_scenes), the authors' 3
+MAX_SEED = 2 ** 64 - 1      # torch.manual_seed takes seeds below 2**64
+MAX_PROCESSES = 1024        # --jobs and --threads: more is a mistyped number (torch crashes)
+
+
+# Argument types: a bad value is refused by the parser, before anything is generated.
+
+def seed(text: str) -> int:
+    value = non_negative_int(text)
+    if value > MAX_SEED:
+        raise argparse.ArgumentTypeError(f"{value} must be at most {MAX_SEED} (2**64 - 1)")
+    return value
+
+
+def processes(text: str) -> int:
+    value = positive_int(text)
+    if value > MAX_PROCESSES:
+        raise argparse.ArgumentTypeError(f"{value} must be at most {MAX_PROCESSES}")
+    return value
+
+
+def finite(convert):
+    """``convert`` (a float argument type) refusing inf and nan first."""
+    def checked(text: str) -> float:
+        value = number(text)
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"{value} is not a finite number")
+        return convert(text)
+    checked.__name__ = convert.__name__
+    return checked
+
+
+finite_positive_float = finite(positive_float)
+finite_non_negative_float = finite(non_negative_float)
+
+
+def checkpoint_file(text: str) -> pathlib.Path:
+    """OUTPUT: a path whose last part is a file name (not empty, '.', '..' or ending in '/')."""
+    if not text:
+        raise argparse.ArgumentTypeError("the checkpoint path is empty")
+    if text.replace(os.sep, "/").rsplit("/", 1)[-1] in ("", ".", ".."):
+        raise argparse.ArgumentTypeError(f"{text} names a folder, expected a checkpoint file "
+                                         "name (.pt)")
+    return pathlib.Path(text)
+
+
+def given_path(text: str) -> pathlib.Path:
+    """A path that is not empty (an empty one would be the current folder)."""
+    if not text:
+        raise argparse.ArgumentTypeError("the path is empty")
+    return pathlib.Path(text)
 
 
 def demo_config(**overrides):
@@ -46,15 +100,18 @@ def demo_config(**overrides):
 
 def parser() -> argparse.ArgumentParser:
     p = OneLineParser(prog="parq-train", description=__doc__.splitlines()[0])
-    p.add_argument("output", type=pathlib.Path, help="checkpoint to write (.pt)")
-    p.add_argument("--seed", type=integer, default=0, help="training seed (default 0)")
-    p.add_argument("--data", type=pathlib.Path, default=pathlib.Path("data/train"),
+    p.add_argument("output", metavar="OUTPUT", type=checkpoint_file,
+                   help="checkpoint to write (.pt), in an existing folder; written at the end "
+                        "(to a temporary file renamed into place)")
+    p.add_argument("--seed", type=seed, default=0,
+                   help=f"training seed (0-{MAX_SEED}, default 0)")
+    p.add_argument("--data", type=given_path, default=pathlib.Path("data/train"),
                    help="folder of training scenes, completed when scenes are missing; "
                         "scenes made with another --frames are an error (default data/train)")
     p.add_argument("--scenes", type=positive_int, default=1600,
                    help="training scenes: parq-synth scenes 0..N-1 of the training seed, the "
                         "missing ones generated into --data (default 1600)")
-    p.add_argument("--jobs", type=positive_int, default=os.cpu_count() or 1,
+    p.add_argument("--jobs", type=processes, default=min(os.cpu_count() or 1, MAX_PROCESSES),
                    help="processes generating scenes (default: one per core)")
     p.add_argument("--frames", type=positive_int, default=30,
                    help="frames per training scene (default 30: more short scenes, not fewer "
@@ -62,7 +119,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--pretrain-steps", type=non_negative_int, default=8000,
                    help="backbone pretraining steps on depth and object classes, the stand-in "
                         "for ImageNet weights (default 8000; 0 skips it)")
-    p.add_argument("--pretrained", type=pathlib.Path, default=None,
+    p.add_argument("--pretrained", type=given_path, default=None,
                    help="start from this pretrained backbone instead of pretraining (the "
                         "OUTPUT stem + '-pretrained.pt' that every run with pretraining writes; "
                         "--pretrain-steps is then ignored): the same weights as pretraining "
@@ -76,11 +133,12 @@ def parser() -> argparse.ArgumentParser:
                         "snippets the same way")
     p.add_argument("--iterations", type=positive_int, default=4,
                    help="recurrent iterations supervised per step (default 4)")
-    p.add_argument("--lr", type=positive_float, default=5e-4,
+    p.add_argument("--lr", type=finite_positive_float, default=5e-4,
                    help="peak learning rate (default 5e-4)")
-    p.add_argument("--backbone-lr", type=non_negative_float, default=1.0,
+    p.add_argument("--backbone-lr", type=finite_non_negative_float, default=1.0,
                    help="the pretrained ResNet-FPN's learning rate as a fraction of --lr "
-                        "(default 1.0; 0.1 trained worse, see docs/demo-experiments.md)")
+                        "(default 1.0; 0 freezes it; 0.1 trained worse, see "
+                        "docs/demo-experiments.md)")
     p.add_argument("--fused-attention", action="store_true",
                    help="torch's fused attention kernel in training: the same arithmetic in "
                         "another rounding order, 0.185 s a step at 2 threads against 0.205; "
@@ -93,13 +151,13 @@ def parser() -> argparse.ArgumentParser:
                         "emulated and slower. Neither run with it beat the demo's float32: 0.02 "
                         "lower F1@0.25 on 120 held-out scenes, level at IoU 0.5 "
                         "(benchmarks/results/spread-models.md); off by default")
-    p.add_argument("--denoise", type=non_negative_float, default=0.0, metavar="SCALE",
+    p.add_argument("--denoise", type=finite_non_negative_float, default=0.0, metavar="SCALE",
                    help="add one denoising query per target (DN-DETR; beyond the paper's "
                         "objective, training only: the exported graphs are the same), its "
                         "reference point the target's center moved by up to SCALE half "
                         "extents per axis (default 0: none, the paper's objective alone). "
                         "At 1.0 it raised reach but lowered F1, see docs/demo-experiments.md")
-    p.add_argument("--denoise-class-weight", type=non_negative_float, default=1.0,
+    p.add_argument("--denoise-class-weight", type=finite_non_negative_float, default=1.0,
                    metavar="W",
                    help="weight of the denoising queries' class loss against their box losses "
                         "(default 1.0; 0: boxes only, so that they cannot teach the class head "
@@ -110,7 +168,7 @@ def parser() -> argparse.ArgumentParser:
                         "reflected; parq_train.mirror), twice the rooms for no extra time; "
                         "pretraining is unchanged. Off by default, so that the default command "
                         "rebuilds the shipped demo bit for bit")
-    p.add_argument("--dense-weight", type=non_negative_float, default=0.0, metavar="W",
+    p.add_argument("--dense-weight", type=finite_non_negative_float, default=0.0, metavar="W",
                    help="add the pretraining's dense targets (per feature cell: log-depth and "
                         "the class seen there) as an auxiliary loss on the backbone's "
                         "features, through a linear probe dropped after training, times W "
@@ -125,8 +183,8 @@ def parser() -> argparse.ArgumentParser:
                    help="continue an interrupted run from OUTPUT's stem + '-state.pt': give "
                         "the same command plus --resume; the weights come out as without the "
                         "interruption, bit for bit (parq_train.resume)")
-    p.add_argument("--threads", type=positive_int, default=None,
-                   help="torch threads (default: all)")
+    p.add_argument("--threads", type=processes, default=None,
+                   help=f"torch threads (1-{MAX_PROCESSES}, default: all)")
     return p
 
 
@@ -139,7 +197,68 @@ def main(argv=None) -> int:
         return 2
 
 
+def check_arguments(args) -> None:
+    """What the parser cannot check alone, before any work: the limits of parq-synth and the
+    runtime, whether a scene's frames hold a snippet, and the outputs (:func:`check_outputs`).
+    ParqError naming the flag or path."""
+    from parq_runtime.keyframes import span_of
+    from parq_runtime.model_card import MAX_ITERATIONS
+    from parq_synth.cli import MAX_FRAMES, MAX_SCENES
+
+    for flag, value, limit in (("--scenes", args.scenes, MAX_SCENES),
+                               ("--frames", args.frames, MAX_FRAMES),
+                               ("--iterations", args.iterations, MAX_ITERATIONS)):
+        if value > limit:
+            raise ParqError(f"{flag} {value}: at most {limit}")
+    span = span_of(VIEWS, args.gap)
+    if span > args.frames:
+        raise ParqError(f"--frames {args.frames}: a scene needs at least {span} frames for a "
+                        f"snippet of {VIEWS} views {args.gap} keyframe(s) apart "
+                        f"(--gap {args.gap})")
+    check_outputs(args)
+
+
+def check_outputs(args) -> None:
+    """OUTPUT and the files written beside it (the state, the pretrained backbone, the
+    snapshots) can be written: OUTPUT is no folder, its folder exists and takes a file with
+    the longest of their names (a trial file, removed).  ParqError naming the path."""
+    from parq_runtime import files
+
+    from .resume import path_for
+
+    try:
+        output = files.check_writable(args.output)  # a folder, a missing folder, no permission
+        beside = [path_for(output)]
+        if args.pretrain_steps and args.pretrained is None:
+            beside.append(pretrained_path(output))
+        for path in beside:
+            if path.is_dir():
+                raise ParqError(f"{path}: is a folder, and parq-train writes this file beside "
+                                f"{output}")
+        names = [p.name for p in [output, *beside]]
+        if args.snapshot_every and args.snapshot_every < args.steps:
+            last = (args.steps - 1) // args.snapshot_every * args.snapshot_every
+            names.append(snapshot_path(output, last).name)
+        # as checkpoint.save writes: root passes check_writable's access() test anywhere
+        fd, probe = tempfile.mkstemp(prefix=f".{max(names, key=len)}.", suffix=".tmp",
+                                     dir=output.absolute().parent)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:    # e.g. a name too long, a folder that takes no files (/proc)
+        raise ParqError(f"{args.output}: cannot write there ({e.strerror or e})") from None
+
+
+def pretrained_path(output: pathlib.Path) -> pathlib.Path:
+    return output.with_name(f"{output.stem}-pretrained.pt")
+
+
+def snapshot_path(output: pathlib.Path, step: int) -> pathlib.Path:
+    return output.with_name(f"{output.stem}-step{step}.pt")
+
+
 def run(args, argv) -> int:
+    check_arguments(args)
+
     import torch
 
     from parq_export import checkpoint
@@ -165,7 +284,12 @@ def run(args, argv) -> int:
     folders = data.training_scenes(args.data, args.scenes, TRAIN_SEED, args.frames,
                                    config.image_size, jobs=args.jobs, log=log)
     generated = time.perf_counter() - start
-    snippets = data.load_scenes(folders, config, log=log, dense=args.dense_weight > 0)
+    snippets = data.load_scenes(folders, config, views=VIEWS, log=log,
+                                dense=args.dense_weight > 0)
+    if not snippets:
+        raise ParqError(f"{args.data}: the {len(folders)} scenes of {args.frames} frames hold "
+                        f"no snippet of {VIEWS} keyframes {args.gap} apart; lower --gap or "
+                        f"raise --frames")
     model = train.new_model(config, args.seed, snippets)
     pre_history, pre_record = [], {"steps": 0}
     if state is not None:
@@ -182,7 +306,7 @@ def run(args, argv) -> int:
         pre_record = pretrain.record_of(
             config, args.pretrain_steps, args.seed, TRAIN_SEED, folders, args.frames,
             minutes=round((time.perf_counter() - start - generated) / 60, 1))
-        path = args.output.with_name(f"{args.output.stem}-pretrained.pt")
+        path = pretrained_path(args.output)
         pretrain.save_backbone(path, model.backbone, pre_record)
         log(f"pretrained backbone {path}")
     pretrained = time.perf_counter() - start - generated
@@ -199,7 +323,7 @@ def run(args, argv) -> int:
         resume.save(state_path, run_state, recipe, earlier)
 
     def snapshot(model_now, step):
-        path = args.output.with_name(f"{args.output.stem}-step{step}.pt")
+        path = snapshot_path(args.output, step)
         checkpoint.save(path, model_now, {"step": step})
         log(f"snapshot {path}")
 

@@ -619,3 +619,72 @@ def test_library_raises_parq_error_for_bad_arguments(tmp_path):
         parq_synth.generate(tmp_path, 0, 0)
     with pytest.raises(ParqError):
         parq_synth.generate_scene(tmp_path / "s", 0, size=(10, 10))
+
+
+@pytest.fixture
+def no_scenes(monkeypatch):
+    """Writing scenes fails the test: a bad argument must be refused before it."""
+    def started(*args, **kwargs):
+        raise AssertionError("parq-synth started work before refusing its arguments")
+
+    monkeypatch.setattr(writer, "generate", started)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["out", "--scenes", "1", "--seed", "0", "--frames", "100000000000"],
+     "argument --frames: 100000000000 must be at most 100000"),
+    (["out", "--scenes", "100000000", "--seed", "0"],
+     "argument --scenes: 100000000 must be at most 1000000"),
+    (["out", "--scenes", "1", "--seed", "0", "--start", "1000000"],
+     "argument --start: 1000000 must be at most 999999"),
+    (["out", "--scenes", "1", "--seed", "0", "--jobs", "5000"],
+     "argument --jobs: 5000 must be at most 1024"),
+    (["", "--scenes", "1", "--seed", "0"], "argument OUT: the output folder name is empty"),
+])
+def test_cli_refuses_huge_counts_and_an_empty_out_before_creating_anything(
+        tmp_path, capsys, monkeypatch, no_scenes, argv, message):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        cli.main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2
+    assert err.startswith("parq-synth: error: ") and message in err
+    assert "Traceback" not in err and err.count("\n") == 1
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("failure", [ParqError("the scene failed"), MemoryError()])
+def test_cli_run_that_writes_no_scene_leaves_no_folder(tmp_path, capsys, monkeypatch, failure):
+    """OUT (and the missing folders above it) is created to write the first scene; when the
+    run fails before any scene is whole they are removed again, whatever the failure.  An OUT
+    that was there before stays."""
+    def fail(*args, **kwargs):
+        raise failure
+
+    def run(out):
+        try:
+            return cli.main([str(out), "--scenes", "2", "--seed", "0", "--frames", "1",
+                             "--width", "16", "--height", "16"])
+        except MemoryError:
+            return "MemoryError"
+
+    monkeypatch.setattr(writer, "build_scene", fail)
+    expected = 2 if isinstance(failure, ParqError) else "MemoryError"
+    assert run(tmp_path / "a" / "b" / "out") == expected
+    assert not any(tmp_path.iterdir())
+    (tmp_path / "kept").mkdir()
+    assert run(tmp_path / "kept") == expected
+    assert [p.name for p in tmp_path.iterdir()] == ["kept"]
+    if isinstance(failure, ParqError):
+        assert capsys.readouterr().err == "parq-synth: error: the scene failed\n" * 2
+
+
+def test_cli_output_folder_it_cannot_create_leaves_no_parent_folder(tmp_path, capsys):
+    (tmp_path / "kept").mkdir()
+    for out in (tmp_path / "q" / ("a" * 300), tmp_path / "kept" / "r" / ("a" * 300) / "s"):
+        assert cli.main([str(out), "--scenes", "1", "--seed", "0"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("parq-synth: error: ") and err.count("\n") == 1
+        assert "cannot create the output folder" in err
+    assert [p.name for p in tmp_path.iterdir()] == ["kept"]
+    assert not any((tmp_path / "kept").iterdir())

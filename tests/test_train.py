@@ -1,6 +1,8 @@
 """The training objective and loop."""
 import json
 import math
+import os
+import pathlib
 
 import numpy as np
 import pytest
@@ -673,3 +675,162 @@ def test_parq_train_resume_continues_an_interrupted_command(tmp_path, capsys, mo
     assert not resume.path_for(tmp_path / "b.pt").exists()
     assert cli.main([str(tmp_path / "b.pt"), *common, "--resume"]) == 2
     assert "no training state to resume" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------ parq-train's argument checks
+
+TINY_RUN = ["--scenes", "1", "--frames", "8", "--jobs", "1", "--steps", "1", "--batch", "1",
+            "--iterations", "1", "--pretrain-steps", "0", "--snapshot-every", "0"]
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """parq-train's first work (setting threads, generating scenes) fails the test: a bad
+    argument must be refused before it."""
+    import parq_train.data
+
+    def started(*args, **kwargs):
+        raise AssertionError("parq-train started work before refusing its arguments")
+
+    monkeypatch.setattr(parq_train.data, "training_scenes", started)
+    monkeypatch.setattr(torch, "set_num_threads", started)
+
+
+def refused(argv, capsys):
+    """(exit code, stderr) of parq-train ``argv``, parser errors included."""
+    from parq_train import cli
+
+    capsys.readouterr()
+    try:
+        code = cli.main(argv)
+    except SystemExit as e:
+        code = e.code
+    return code, capsys.readouterr().err
+
+
+def assert_one_line(code, err, needle):
+    assert code == 2, err
+    assert err.startswith("parq-train: error: ") and err.count("\n") == 1, err
+    assert needle in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("output, needle", [
+    ("adir", "adir: is a folder, expected a file name"),
+    ("nodir/x.pt", "nodir: folder does not exist"),
+    ("", "argument OUTPUT: the checkpoint path is empty"),
+    (".", "names a folder, expected a checkpoint file name"),
+    ("new/", "names a folder, expected a checkpoint file name"),
+    ("adir/..", "names a folder, expected a checkpoint file name"),
+    ("adir/x.pt", "x-state.pt: is a folder, and parq-train writes this file beside"),
+    ("a" * 250 + ".pt", "cannot write there (File name too long)"),
+])
+def test_parq_train_refuses_an_unwritable_output_before_any_work(
+        output, needle, tmp_path, capsys, monkeypatch, no_work):
+    """OUTPUT (and the state file beside it) is checked before scenes are generated: an
+    existing folder, a missing folder, an empty path or one naming a folder are one line, exit
+    2, and nothing is written (no data folder, no checkpoint)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "adir" / "x-state.pt").mkdir(parents=True)
+    code, err = refused([output, "--data", "train", *TINY_RUN], capsys)
+    assert_one_line(code, err, needle)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir"]
+    assert [p.name for p in (tmp_path / "adir").iterdir()] == ["x-state.pt"]
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
+def test_parq_train_tries_the_output_folder_rather_than_trusting_its_permissions(
+        tmp_path, capsys, no_work):
+    """/proc takes no files, though access() tells root it is writable."""
+    code, err = refused(["/proc/x.pt", "--data", str(tmp_path / "train"), *TINY_RUN], capsys)
+    assert_one_line(code, err, "/proc/x.pt: cannot write there")
+    assert not (tmp_path / "train").exists()
+
+
+@pytest.mark.parametrize("flag, needle", [
+    (["--seed", "-1"], "--seed: -1 must not be negative"),
+    (["--seed", str(2 ** 64)], "--seed: 18446744073709551616 must be at most"),
+    (["--lr", "inf"], "--lr: inf is not a finite number"),
+    (["--lr", "nan"], "--lr: nan is not a finite number"),
+    (["--lr", "0"], "--lr: 0.0 must be above 0"),
+    (["--backbone-lr", "inf"], "--backbone-lr: inf is not a finite number"),
+    (["--denoise", "inf"], "--denoise: inf is not a finite number"),
+    (["--denoise", "nan"], "--denoise: nan is not a finite number"),
+    (["--denoise-class-weight", "inf"], "--denoise-class-weight: inf is not a finite number"),
+    (["--dense-weight", "inf"], "--dense-weight: inf is not a finite number"),
+    (["--dense-weight", "-1"], "--dense-weight: -1.0 must not be negative"),
+    (["--threads", "100000000"], "--threads: 100000000 must be at most 1024"),
+    (["--jobs", "5000"], "--jobs: 5000 must be at most 1024"),
+    (["--scenes", "100000000"], "--scenes 100000000: at most 1000000"),
+    (["--frames", "100000000000"], "--frames 100000000000: at most 100000"),
+    (["--iterations", "1001"], "--iterations 1001: at most 1000"),
+    (["--gap", "4"], "--frames 8: a scene needs at least 9 frames"),
+    (["--frames", "2"], "--frames 2: a scene needs at least 3 frames"),
+    (["--data", ""], "--data: the path is empty"),
+    (["--pretrained", ""], "--pretrained: the path is empty"),
+])
+def test_parq_train_refuses_bad_numbers_before_any_work(flag, needle, tmp_path, capsys,
+                                                        monkeypatch, no_work):
+    monkeypatch.chdir(tmp_path)
+    code, err = refused(["x.pt", *TINY_RUN, "--data", "train", *flag], capsys)
+    assert_one_line(code, err, needle)
+    assert not any(tmp_path.iterdir())
+
+
+def test_parq_train_checks_pass_for_a_good_command_and_leave_nothing(tmp_path):
+    from parq_train import cli
+
+    args = cli.parser().parse_args([str(tmp_path / "x.pt"), *TINY_RUN, "--seed", str(2 ** 64 - 1),
+                                    "--pretrain-steps", "3", "--snapshot-every", "2",
+                                    "--denoise", "0.5", "--backbone-lr", "0"])
+    cli.check_arguments(args)
+    assert not any(tmp_path.iterdir())
+
+
+def test_parq_train_says_so_when_the_scenes_hold_no_snippet(tmp_path, capsys, monkeypatch):
+    """Scenes whose keyframes are too few for one snippet: one line, not a numpy error."""
+    import parq_train.data
+
+    monkeypatch.setattr(parq_train.data, "training_scenes", lambda *args, **kwargs: [])
+    code, err = refused([str(tmp_path / "x.pt"), *TINY_RUN, "--data", str(tmp_path / "t")],
+                        capsys)
+    assert code == 2 and "Traceback" not in err
+    assert err.splitlines()[-1].startswith("parq-train: error: ")
+    assert "hold no snippet" in err and not (tmp_path / "x.pt").exists()
+
+
+def test_a_checkpoint_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
+    """Checkpoints (parq-train's, its snapshots, every other writer's) go to a temporary file
+    renamed into place: a write that fails leaves an earlier checkpoint as it was and no
+    temporary file."""
+    import os
+
+    from parq_export import checkpoint
+    from parq_runtime import files
+    from parq_runtime.errors import ParqError
+
+    model = PARQ(tiny_config()).eval()
+    path = tmp_path / "x.pt"
+    checkpoint.save(path, model, {"step": 1})
+    assert checkpoint.load(path).config == model.config
+    before = path.read_bytes()
+    real_fdopen = os.fdopen
+
+    class FullDisk:             # the disk fills up halfway through the write
+        def __init__(self, fd, mode):
+            self.file = real_fdopen(fd, mode)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.file.close()
+
+        def write(self, data):
+            self.file.write(data[:len(data) // 2])
+            raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(files.os, "fdopen", FullDisk)
+    with pytest.raises(ParqError, match="x.pt: could not write .No space left on device"):
+        checkpoint.save(path, model, {"step": 2})
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["x.pt"]
