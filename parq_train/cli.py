@@ -290,6 +290,9 @@ def run(args, argv) -> int:
         raise ParqError(f"{args.data}: the {len(folders)} scenes of {args.frames} frames hold "
                         f"no snippet of {VIEWS} keyframes {args.gap} apart; lower --gap or "
                         f"raise --frames")
+    if len(snippets) < args.batch:      # a step would silently take fewer
+        raise ParqError(f"--batch {args.batch}: the {len(folders)} training scenes hold only "
+                        f"{len(snippets)} snippets; lower --batch or raise --scenes")
     model = train.new_model(config, args.seed, snippets)
     pre_history, pre_record = [], {"steps": 0}
     if state is not None:

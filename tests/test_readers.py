@@ -526,3 +526,23 @@ def test_gravity_warns_when_poor():
     est = estimate(portrait)
     assert any("out of any plane" in w or "far from the horizon" in w for w in est.warnings)
     assert any("only 1 camera" in w for w in estimate(straight[:1]).warnings)
+
+
+@pytest.mark.parametrize("side", [40, 50])   # above the limit (Pillow warns), above twice it
+def test_an_image_above_the_decompression_bomb_limit_is_refused_by_name(tmp_path, monkeypatch,
+                                                                        side):
+    import warnings
+
+    from parq_runtime import readers
+
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)   # 40x40 and 50x50 stand for 10k x 10k
+    path = tmp_path / "huge.png"
+    Image.new("RGB", (side, side)).save(path)
+
+    class Frame:
+        image_path = path
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")          # nothing may leak out as a warning either
+        with pytest.raises(ParqError, match="huge.png: image is larger than 0 megapixels"):
+            readers.check_headers([Frame()])

@@ -834,3 +834,17 @@ def test_a_checkpoint_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
         checkpoint.save(path, model, {"step": 2})
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["x.pt"]
+
+
+def test_parq_train_refuses_a_batch_larger_than_its_snippets(tmp_path, capsys, monkeypatch):
+    """A step cannot take more snippets than there are: one line, not smaller batches."""
+    import parq_train.data
+
+    monkeypatch.setattr(parq_train.data, "training_scenes", lambda *args, **kwargs: [])
+    monkeypatch.setattr(parq_train.data, "load_scenes", lambda *args, **kwargs: [None] * 3)
+    argv = [str(tmp_path / "x.pt"), *TINY_RUN, "--data", str(tmp_path / "t")]
+    code, err = refused([*argv[:-2], "--batch", "4", *argv[-2:]], capsys)
+    assert code == 2 and "Traceback" not in err
+    assert err.splitlines()[-1] == ("parq-train: error: --batch 4: the 0 training scenes hold "
+                                    "only 3 snippets; lower --batch or raise --scenes")
+    assert not (tmp_path / "x.pt").exists()

@@ -29,6 +29,7 @@ import importlib
 import math
 import pathlib
 import re
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -94,15 +95,21 @@ def check_headers(frames) -> None:
     """Read every frame's image header (not its pixels) and check its size against the
     intrinsics, so that a missing, unreadable or mis-sized image stops a run before it starts
     rather than hours into it.  Pixel data that is corrupt past the header is found when the
-    image is decoded."""
+    image is decoded.  An image above Pillow's decompression-bomb limit (89 megapixels, more
+    than any camera frame) is refused here, where Pillow would only have warned."""
     for frame in frames:
         try:
-            with Image.open(frame.image_path) as im:
-                w, h = im.size
+            with warnings.catch_warnings():
+                warnings.simplefilter("error", Image.DecompressionBombWarning)
+                with Image.open(frame.image_path) as im:
+                    w, h = im.size
         except FileNotFoundError:
             raise ParqError(f"{frame.image_path}: image not found") from None
-        except (UnidentifiedImageError, OSError, SyntaxError, ValueError, TypeError,
-                Image.DecompressionBombError) as e:
+        except (Image.DecompressionBombWarning, Image.DecompressionBombError):
+            raise ParqError(f"{frame.image_path}: image is larger than "
+                            f"{Image.MAX_IMAGE_PIXELS / 1e6:.0f} megapixels, not a camera "
+                            "frame") from None
+        except (UnidentifiedImageError, OSError, SyntaxError, ValueError, TypeError) as e:
             raise ParqError(f"{frame.image_path}: not a readable image ({e})") from None
         check_fits(frame, w, h)
 
