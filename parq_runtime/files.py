@@ -42,15 +42,24 @@ def write_stdout(text: str) -> None:
 
 
 def check_writable(path) -> pathlib.Path:
-    """Fail early, before any work, if ``path`` cannot be created."""
+    """Fail early, before any work, if ``path`` cannot be created: it is a folder, its folder
+    is missing or not writable, or a trial file beside it (created and removed, as the
+    outputs' temporary files are) cannot be made there: access() says yes to root anywhere,
+    /proc included, and a name can be too long."""
     path = pathlib.Path(path)
     parent = path.absolute().parent
-    if path.is_dir():
-        raise ParqError(f"{path}: is a folder, expected a file name")
-    if not parent.is_dir():
-        raise ParqError(f"{parent}: folder does not exist")
-    if not os.access(parent, os.W_OK):
-        raise ParqError(f"{parent}: not writable")
+    try:
+        if path.is_dir():
+            raise ParqError(f"{path}: is a folder, expected a file name")
+        if not parent.is_dir():
+            raise ParqError(f"{parent}: folder does not exist")
+        if not os.access(parent, os.W_OK):
+            raise ParqError(f"{parent}: not writable")
+        fd, trial = tempfile.mkstemp(prefix=f".{path.name}.", dir=parent)
+        os.close(fd)
+        os.unlink(trial)
+    except OSError as e:
+        raise ParqError(f"{path}: cannot write there ({e.strerror or e})") from None
     return path
 
 

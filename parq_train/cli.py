@@ -18,7 +18,6 @@ import math
 import os
 import pathlib
 import sys
-import tempfile
 import time
 
 from parq_runtime.arguments import (OneLineParser, non_negative_float, non_negative_int, number,
@@ -219,33 +218,29 @@ def check_arguments(args) -> None:
 
 
 def check_outputs(args) -> None:
-    """OUTPUT and the files written beside it (the state, the pretrained backbone, the
-    snapshots) can be written: OUTPUT is no folder, its folder exists and takes a file with
-    the longest of their names (a trial file, removed).  ParqError naming the path."""
+    """OUTPUT and the files written beside it (the state, the pretrained backbone, the last
+    snapshot) can be written (parq_runtime.files.check_writable: no folder, an existing
+    folder that takes a file of that name).  ParqError naming the path."""
     from parq_runtime import files
 
     from .resume import path_for
 
-    try:
-        output = files.check_writable(args.output)  # a folder, a missing folder, no permission
-        beside = [path_for(output)]
-        if args.pretrain_steps and args.pretrained is None:
-            beside.append(pretrained_path(output))
-        for path in beside:
-            if path.is_dir():
-                raise ParqError(f"{path}: is a folder, and parq-train writes this file beside "
-                                f"{output}")
-        names = [p.name for p in [output, *beside]]
-        if args.snapshot_every and args.snapshot_every < args.steps:
-            last = (args.steps - 1) // args.snapshot_every * args.snapshot_every
-            names.append(snapshot_path(output, last).name)
-        # as checkpoint.save writes: root passes check_writable's access() test anywhere
-        fd, probe = tempfile.mkstemp(prefix=f".{max(names, key=len)}.", suffix=".tmp",
-                                     dir=output.absolute().parent)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as e:    # e.g. a name too long, a folder that takes no files (/proc)
-        raise ParqError(f"{args.output}: cannot write there ({e.strerror or e})") from None
+    output = files.check_writable(args.output)
+    beside = [path_for(output)]
+    if args.pretrain_steps and args.pretrained is None:
+        beside.append(pretrained_path(output))
+    if args.snapshot_every and args.snapshot_every < args.steps:
+        beside.append(snapshot_path(output, (args.steps - 1) // args.snapshot_every
+                                    * args.snapshot_every))
+    for path in beside:
+        try:
+            taken = path.is_dir()
+        except OSError:     # a name too long once its ending is added: check_writable says so
+            taken = False
+        if taken:
+            raise ParqError(f"{path}: is a folder, and parq-train writes this file beside "
+                            f"{output}")
+        files.check_writable(path)
 
 
 def pretrained_path(output: pathlib.Path) -> pathlib.Path:
