@@ -9,6 +9,7 @@ import hashlib
 import json
 import math
 import pathlib
+import reprlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -205,12 +206,6 @@ def _sha256(path: pathlib.Path) -> str:
     return h.hexdigest()
 
 
-def _shown(value) -> str:
-    """A value for a message, cut short (a card's lists can be long)."""
-    text = repr(value)
-    return text if len(text) <= 40 else text[:36] + " ..."
-
-
 def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) \
         and math.isfinite(value)
@@ -219,7 +214,7 @@ def _is_number(value) -> bool:
 def _section(path, raw: dict, key: str) -> dict:
     value = raw[key]
     if not isinstance(value, dict):
-        raise ParqError(f"{path}: {key} must be an object ({{...}}), got {_shown(value)}")
+        raise ParqError(f"{path}: {key} must be an object ({{...}}), got {reprlib.repr(value)}")
     return value
 
 
@@ -234,7 +229,7 @@ def _integer(path, section: dict, where: str, key: str, low: int, high: int | No
     if isinstance(value, bool) or not isinstance(value, int) or value < low \
             or (high is not None and value > high):
         span = f"from {low} to {high}" if high is not None else f">= {low}"
-        raise ParqError(f"{path}: {where}.{key} must be an integer {span}, got {_shown(value)}")
+        raise ParqError(f"{path}: {where}.{key} must be an integer {span}, got {reprlib.repr(value)}")
     return value
 
 
@@ -242,7 +237,7 @@ def _number(path, section: dict, where: str, key: str, span: str, inside) -> flo
     value = _entry(path, section, where, key)
     if not _is_number(value) or not inside(value):
         raise ParqError(f"{path}: {where}.{key} must be a number in {span}, got "
-                        f"{_shown(value)}")
+                        f"{reprlib.repr(value)}")
     return value
 
 
@@ -253,7 +248,7 @@ def _ranges(path, section: dict, where: str, key: str, names: str) -> list:
     if not (isinstance(value, list) and len(value) == count and all(map(_is_number, value))
             and all(lo < hi for lo, hi in zip(value[0::2], value[1::2]))):
         raise ParqError(f"{path}: {where}.{key} must be {count} numbers [{names}], each min "
-                        f"below its max, got {_shown(value)}")
+                        f"below its max, got {reprlib.repr(value)}")
     return value
 
 
@@ -266,7 +261,7 @@ def _check_graphs(path, folder: pathlib.Path, raw: dict, check_hashes: bool) -> 
         name = entry["file"]
         if not isinstance(name, str) or not name.strip():
             raise ParqError(f"{path}: graphs.{role}.file must be a file name, got "
-                            f"{_shown(name)}")
+                            f"{reprlib.repr(name)}")
         graph = folder / name
         if not graph.exists():
             raise ParqError(f"{graph}: missing from the model folder")
@@ -276,7 +271,7 @@ def _check_graphs(path, folder: pathlib.Path, raw: dict, check_hashes: bool) -> 
         digest = entry.get("sha256")
         if digest is not None and not isinstance(digest, str):
             raise ParqError(f"{path}: graphs.{role}.sha256 must be a string (the file's "
-                            f"sha256), got {_shown(digest)}")
+                            f"sha256), got {reprlib.repr(digest)}")
         if check_hashes and digest and _sha256(graph) != digest:
             raise ParqError(f"{graph}: does not match the model card (sha256 differs; the file "
                             "was changed or comes from another export)")
@@ -286,13 +281,13 @@ def _check_sizes(path, raw: dict) -> None:
     """classes, mean_sizes, image, feature, decoder and reference_points."""
     classes = raw["classes"]
     if not (isinstance(classes, list) and classes and all(isinstance(c, str) for c in classes)):
-        raise ParqError(f"{path}: classes must be a list of class names, got {_shown(classes)}")
+        raise ParqError(f"{path}: classes must be a list of class names, got {reprlib.repr(classes)}")
     sizes = raw["mean_sizes"]
     if not (isinstance(sizes, list) and all(
             isinstance(s, list) and len(s) == 3 and all(_is_number(v) and v > 0 for v in s)
             for s in sizes)):
         raise ParqError(f"{path}: mean_sizes must be a list of [x, y, z] sizes > 0, got "
-                        f"{_shown(sizes)}")
+                        f"{reprlib.repr(sizes)}")
     if len(sizes) != len(classes) + 1:
         raise ParqError(f"{path}: {len(sizes)} mean sizes for {len(classes)} classes")
     image = _section(path, raw, "image")
@@ -308,7 +303,7 @@ def _check_sizes(path, raw: dict) -> None:
         value = _entry(path, feature, "feature", key)
         if isinstance(value, bool) or value != size // stride:
             raise ParqError(f"{path}: feature.{key} must be image.{key} / feature.stride = "
-                            f"{size // stride}, got {_shown(value)}")
+                            f"{size // stride}, got {reprlib.repr(value)}")
     channels = _integer(path, feature, "feature", "channels", 4)
     if channels % 4:
         raise ParqError(f"{path}: feature.channels must be a multiple of 4, got {channels}")
@@ -322,12 +317,12 @@ def _check_sizes(path, raw: dict) -> None:
     points = raw["reference_points"]
     if not isinstance(points, list) or not points:
         raise ParqError(f"{path}: reference_points must be a non-empty list of [x, y, z] "
-                        f"points in [0, 1], got {_shown(points)}")
+                        f"points in [0, 1], got {reprlib.repr(points)}")
     for i, point in enumerate(points):
         if not (isinstance(point, list) and len(point) == 3
                 and all(_is_number(v) and 0.0 <= v <= 1.0 for v in point)):
             raise ParqError(f"{path}: reference_points[{i}] must be [x, y, z] in [0, 1] "
-                            f"(normalised), got {_shown(point)}")
+                            f"(normalised), got {reprlib.repr(point)}")
 
 
 def load(folder, check_hashes: bool = True) -> ModelCard:
@@ -351,7 +346,7 @@ def load(folder, check_hashes: bool = True) -> ModelCard:
     version = raw.get("format_version")
     if isinstance(version, bool) or not isinstance(version, int):
         raise ParqError(f"{path}: format_version must be an integer (this version reads "
-                        f"format {CARD_VERSION}), got {_shown(version)}")
+                        f"format {CARD_VERSION}), got {reprlib.repr(version)}")
     if version != CARD_VERSION:
         raise ParqError(f"{path}: written by parq-onnx {raw.get('package_version', '?')} in "
                         f"model format {version}; this version reads format "
@@ -395,7 +390,7 @@ def _checked(folder: pathlib.Path, path: pathlib.Path, raw: dict,
     digest = checkpoint.get("sha256") if isinstance(checkpoint, dict) else None
     if not isinstance(digest, str):     # parq-run's results name the checkpoint by it
         raise ParqError(f"{path}: checkpoint.sha256 must be a string (the exported "
-                        f"checkpoint's sha256), got {_shown(digest)}")
+                        f"checkpoint's sha256), got {reprlib.repr(digest)}")
     snippets = raw.get("snippets", {})
     gap = snippets.get("gap", 1) if isinstance(snippets, dict) else None
     if isinstance(gap, bool) or not isinstance(gap, int) or gap < 1:
