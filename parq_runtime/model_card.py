@@ -229,7 +229,8 @@ def _integer(path, section: dict, where: str, key: str, low: int, high: int | No
     if isinstance(value, bool) or not isinstance(value, int) or value < low \
             or (high is not None and value > high):
         span = f"from {low} to {high}" if high is not None else f">= {low}"
-        raise ParqError(f"{path}: {where}.{key} must be an integer {span}, got {reprlib.repr(value)}")
+        raise ParqError(f"{path}: {where}.{key} must be an integer {span}, got "
+                        f"{reprlib.repr(value)}")
     return value
 
 
@@ -281,7 +282,8 @@ def _check_sizes(path, raw: dict) -> None:
     """classes, mean_sizes, image, feature, decoder and reference_points."""
     classes = raw["classes"]
     if not (isinstance(classes, list) and classes and all(isinstance(c, str) for c in classes)):
-        raise ParqError(f"{path}: classes must be a list of class names, got {reprlib.repr(classes)}")
+        raise ParqError(f"{path}: classes must be a list of class names, got "
+                        f"{reprlib.repr(classes)}")
     sizes = raw["mean_sizes"]
     if not (isinstance(sizes, list) and all(
             isinstance(s, list) and len(s) == 3 and all(_is_number(v) and v > 0 for v in s)
