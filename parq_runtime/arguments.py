@@ -59,6 +59,28 @@ def positive_float(text: str) -> float:
     return value
 
 
+def at_most(convert, limit):
+    """``convert`` (an argument type) with an upper bound: a larger value is a mistyped one."""
+    def checked(text: str):
+        value = convert(text)
+        if value > limit:
+            raise argparse.ArgumentTypeError(f"{value} must be at most {limit}")
+        return value
+    checked.__name__ = convert.__name__
+    return checked
+
+
+def finite(convert):
+    """``convert`` (a float argument type) refusing inf and nan first."""
+    def checked(text: str) -> float:
+        value = number(text)
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"{value} is not a finite number")
+        return convert(text)
+    checked.__name__ = convert.__name__
+    return checked
+
+
 def fraction(text: str) -> float:
     value = number(text)
     if not 0.0 <= value <= 1.0:

@@ -7,7 +7,7 @@ import pathlib
 import sys
 import time
 
-from parq_runtime.arguments import OneLineParser, integer
+from parq_runtime.arguments import OneLineParser, at_most, integer
 from parq_runtime.errors import ParqError
 
 PROG = "parq-synth"
@@ -18,16 +18,6 @@ PROG = "parq-synth"
 MAX_SCENES = 1_000_000      # --scenes; --start is below it
 MAX_FRAMES = 100_000        # --frames
 MAX_JOBS = 1024             # --jobs
-
-
-def at_most(limit: int):
-    """An argparse type: an integer no larger than ``limit``."""
-    def convert(text: str) -> int:
-        value = integer(text)
-        if value > limit:
-            raise argparse.ArgumentTypeError(f"{value} must be at most {limit}")
-        return value
-    return convert
 
 
 def folder_name(text: str) -> str:
@@ -50,15 +40,15 @@ def build_parser() -> argparse.ArgumentParser:
                "--width 160 --height 120")
     p.add_argument("out", metavar="OUT", type=folder_name,
                    help="output folder (created if missing); scenes go to OUT/scene_<k>/")
-    p.add_argument("--scenes", type=at_most(MAX_SCENES), required=True, metavar="N",
+    p.add_argument("--scenes", type=at_most(integer, MAX_SCENES), required=True, metavar="N",
                    help=f"number of scenes to write (1-{MAX_SCENES})")
     p.add_argument("--seed", type=integer, required=True, metavar="S",
                    help="dataset seed (>= 0); scene k uses SeedSequence([S, k])")
-    p.add_argument("--start", type=at_most(MAX_SCENES - 1), default=0, metavar="K",
+    p.add_argument("--start", type=at_most(integer, MAX_SCENES - 1), default=0, metavar="K",
                    help=f"index of the first scene (0-{MAX_SCENES - 1}, default 0): writes "
                         "scene_<K> .. scene_<K+N-1>, e.g. to extend a dataset or redo one "
                         "scene alone")
-    p.add_argument("--frames", type=at_most(MAX_FRAMES), default=60, metavar="F",
+    p.add_argument("--frames", type=at_most(integer, MAX_FRAMES), default=60, metavar="F",
                    help=f"frames per scene (1-{MAX_FRAMES}, default 60; about 6-12 cm apart)")
     p.add_argument("--width", type=integer, default=320, metavar="W",
                    help="image width in pixels (16-4096, default 320)")
@@ -66,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="image height in pixels (16-4096, default 240)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace scene folders that already exist (default: refuse)")
-    p.add_argument("--jobs", type=at_most(MAX_JOBS), default=1, metavar="J",
+    p.add_argument("--jobs", type=at_most(integer, MAX_JOBS), default=1, metavar="J",
                    help=f"scenes rendered in parallel processes (1-{MAX_JOBS}, default 1)")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     return p

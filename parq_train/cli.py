@@ -14,14 +14,13 @@ import argparse
 import datetime
 import hashlib
 import json
-import math
 import os
 import pathlib
 import sys
 import time
 
-from parq_runtime.arguments import (OneLineParser, non_negative_float, non_negative_int, number,
-                                    positive_float, positive_int)
+from parq_runtime.arguments import (OneLineParser, at_most, finite, non_negative_float,
+                                    non_negative_int, positive_float, positive_int)
 from parq_runtime.errors import ParqError
 
 # Scene seeds: training scenes use parq-synth seed TRAIN_SEED, validation VALIDATION_SEED; the
@@ -37,32 +36,8 @@ MAX_PROCESSES = 1024        # --jobs and --threads: more is a mistyped number (t
 
 
 # Argument types: a bad value is refused by the parser, before anything is generated.
-
-def seed(text: str) -> int:
-    value = non_negative_int(text)
-    if value > MAX_SEED:
-        raise argparse.ArgumentTypeError(f"{value} must be at most {MAX_SEED} (2**64 - 1)")
-    return value
-
-
-def processes(text: str) -> int:
-    value = positive_int(text)
-    if value > MAX_PROCESSES:
-        raise argparse.ArgumentTypeError(f"{value} must be at most {MAX_PROCESSES}")
-    return value
-
-
-def finite(convert):
-    """``convert`` (a float argument type) refusing inf and nan first."""
-    def checked(text: str) -> float:
-        value = number(text)
-        if not math.isfinite(value):
-            raise argparse.ArgumentTypeError(f"{value} is not a finite number")
-        return convert(text)
-    checked.__name__ = convert.__name__
-    return checked
-
-
+seed = at_most(non_negative_int, MAX_SEED)
+processes = at_most(positive_int, MAX_PROCESSES)
 finite_positive_float = finite(positive_float)
 finite_non_negative_float = finite(non_negative_float)
 
