@@ -59,6 +59,17 @@ def positive_float(text: str) -> float:
     return value
 
 
+def at_least(convert, limit):
+    """``convert`` (an argument type) with a lower bound."""
+    def checked(text: str):
+        value = convert(text)
+        if value < limit:
+            raise argparse.ArgumentTypeError(f"{value} must be at least {limit}")
+        return value
+    checked.__name__ = convert.__name__
+    return checked
+
+
 def at_most(convert, limit):
     """``convert`` (an argument type) with an upper bound: a larger value is a mistyped one."""
     def checked(text: str):

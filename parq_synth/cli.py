@@ -7,14 +7,18 @@ import pathlib
 import sys
 import time
 
-from parq_runtime.arguments import OneLineParser, at_most, integer
+from parq_runtime.arguments import (OneLineParser, at_least, at_most, integer,
+                                    non_negative_int, positive_int)
 from parq_runtime.errors import ParqError
+
+from .scene import MAX_SIZE, MIN_SIZE
 
 PROG = "parq-synth"
 
 # Upper bounds of the counts, checked by the parser before anything is created: a run of more
 # is a mistyped number (a scene's frames are allocated at once, every index is checked before
-# the first scene is written).  The lower bounds are the library's (parq_synth.scene.check_args).
+# the first scene is written).  The parser checks the lower bounds too, so that its message
+# names the flag; the library checks them again for callers (parq_synth.scene.check_args).
 MAX_SCENES = 1_000_000      # --scenes; --start is below it
 MAX_FRAMES = 100_000        # --frames
 MAX_JOBS = 1024             # --jobs
@@ -25,6 +29,9 @@ def folder_name(text: str) -> str:
     if not text:
         raise argparse.ArgumentTypeError("the output folder name is empty")
     return text
+
+
+pixels = at_most(at_least(integer, MIN_SIZE), MAX_SIZE)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,23 +47,23 @@ def build_parser() -> argparse.ArgumentParser:
                "--width 160 --height 120")
     p.add_argument("out", metavar="OUT", type=folder_name,
                    help="output folder (created if missing); scenes go to OUT/scene_<k>/")
-    p.add_argument("--scenes", type=at_most(integer, MAX_SCENES), required=True, metavar="N",
+    p.add_argument("--scenes", type=at_most(positive_int, MAX_SCENES), required=True, metavar="N",
                    help=f"number of scenes to write (1-{MAX_SCENES})")
-    p.add_argument("--seed", type=integer, required=True, metavar="S",
+    p.add_argument("--seed", type=non_negative_int, required=True, metavar="S",
                    help="dataset seed (>= 0); scene k uses SeedSequence([S, k])")
-    p.add_argument("--start", type=at_most(integer, MAX_SCENES - 1), default=0, metavar="K",
+    p.add_argument("--start", type=at_most(non_negative_int, MAX_SCENES - 1), default=0, metavar="K",
                    help=f"index of the first scene (0-{MAX_SCENES - 1}, default 0): writes "
                         "scene_<K> .. scene_<K+N-1>, e.g. to extend a dataset or redo one "
                         "scene alone")
-    p.add_argument("--frames", type=at_most(integer, MAX_FRAMES), default=60, metavar="F",
+    p.add_argument("--frames", type=at_most(positive_int, MAX_FRAMES), default=60, metavar="F",
                    help=f"frames per scene (1-{MAX_FRAMES}, default 60; about 6-12 cm apart)")
-    p.add_argument("--width", type=integer, default=320, metavar="W",
-                   help="image width in pixels (16-4096, default 320)")
-    p.add_argument("--height", type=integer, default=240, metavar="H",
-                   help="image height in pixels (16-4096, default 240)")
+    p.add_argument("--width", type=pixels, default=320, metavar="W",
+                   help=f"image width in pixels ({MIN_SIZE}-{MAX_SIZE}, default 320)")
+    p.add_argument("--height", type=pixels, default=240, metavar="H",
+                   help=f"image height in pixels ({MIN_SIZE}-{MAX_SIZE}, default 240)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace scene folders that already exist (default: refuse)")
-    p.add_argument("--jobs", type=at_most(integer, MAX_JOBS), default=1, metavar="J",
+    p.add_argument("--jobs", type=at_most(positive_int, MAX_JOBS), default=1, metavar="J",
                    help=f"scenes rendered in parallel processes (1-{MAX_JOBS}, default 1)")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     return p

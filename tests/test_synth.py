@@ -570,11 +570,14 @@ def test_cli_help_documents_every_flag(capsys):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--scenes", "-1", "--seed", "0"], "scenes must be >= 1"),
-    (["--scenes", "1", "--seed", "-5"], "seed must be >= 0"),
-    (["--scenes", "1", "--seed", "0", "--frames", "0"], "frames must be >= 1"),
-    (["--scenes", "1", "--seed", "0", "--width", "8"], "width must be between"),
-    (["--scenes", "1", "--seed", "0", "--jobs", "0"], "jobs must be"),
+    (["--scenes", "-1", "--seed", "0"], "argument --scenes: -1 must be at least 1"),
+    (["--scenes", "1", "--seed", "-5"], "argument --seed: -5 must not be negative"),
+    (["--scenes", "1", "--seed", "0", "--start", "-2"], "argument --start: -2 must not be"),
+    (["--scenes", "1", "--seed", "0", "--frames", "0"], "argument --frames: 0 must be at least"),
+    (["--scenes", "1", "--seed", "0", "--width", "8"], "argument --width: 8 must be at least 16"),
+    (["--scenes", "1", "--seed", "0", "--height", "5000"],
+     "argument --height: 5000 must be at most 4096"),
+    (["--scenes", "1", "--seed", "0", "--jobs", "0"], "argument --jobs: 0 must be at least 1"),
     (["--scenes", "x", "--seed", "0"], "not an integer"),
     (["--seed", "0"], "--scenes"),
 ])
