@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Rebuilds the demo model from nothing, on 2 CPU cores (81 minutes on Xeons; about 2.7 hours
-# on an AVX2-only EPYC: see the README), into
+# Rebuilds the demo model from nothing, on 2 CPU cores (81 minutes on Xeons, 73 on an AVX-512
+# EPYC, about 2.7 hours on an AVX2-only EPYC: see the README), into
 # work/parq-demo; compare it with models/parq-demo with benchmarks/tradeoff.py --model.
 # Needs: pip install -e ".[export,test]".  Seeds: training scenes 1000, validation 2000 and
 # 2001, held-out (reported numbers) 3000, sample scene 4000; training seed 0.
