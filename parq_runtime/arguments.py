@@ -24,11 +24,18 @@ def integer(text: str) -> int:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
 
 
-def positive_int(text: str) -> int:
-    value = integer(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{value} must be at least 1")
-    return value
+def at_least(convert, limit):
+    """``convert`` (an argument type) with a lower bound."""
+    def checked(text: str):
+        value = convert(text)
+        if value < limit:
+            raise argparse.ArgumentTypeError(f"{value} must be at least {limit}")
+        return value
+    checked.__name__ = convert.__name__
+    return checked
+
+
+positive_int = at_least(integer, 1)
 
 
 def non_negative_int(text: str) -> int:
@@ -57,17 +64,6 @@ def positive_float(text: str) -> float:
     if not value > 0:
         raise argparse.ArgumentTypeError(f"{value} must be above 0")
     return value
-
-
-def at_least(convert, limit):
-    """``convert`` (an argument type) with a lower bound."""
-    def checked(text: str):
-        value = convert(text)
-        if value < limit:
-            raise argparse.ArgumentTypeError(f"{value} must be at least {limit}")
-        return value
-    checked.__name__ = convert.__name__
-    return checked
 
 
 def at_most(convert, limit):

@@ -47,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
                "--width 160 --height 120")
     p.add_argument("out", metavar="OUT", type=folder_name,
                    help="output folder (created if missing); scenes go to OUT/scene_<k>/")
-    p.add_argument("--scenes", type=at_most(positive_int, MAX_SCENES), required=True, metavar="N",
+    p.add_argument("--scenes", type=at_most(positive_int, MAX_SCENES), required=True,
+                   metavar="N",
                    help=f"number of scenes to write (1-{MAX_SCENES})")
     p.add_argument("--seed", type=non_negative_int, required=True, metavar="S",
                    help="dataset seed (>= 0); scene k uses SeedSequence([S, k])")

@@ -458,7 +458,6 @@ def test_scene_k_is_reproducible_alone(tmp_path):
         (a / "boxes.json").read_bytes()
 
 
-
 def test_the_shipped_sample_scene_is_what_its_seed_generates_on_this_machine(tmp_path):
     """The same seed gives the same scene on any machine: the demo's sample scene
     (models/parq-demo/sample-scene, seed 4000, scene 0) was generated on another computer and
@@ -487,6 +486,7 @@ def test_the_shipped_sample_scene_is_what_its_seed_generates_on_this_machine(tmp
         np.testing.assert_array_equal(cv2.imread(str(here / "color" / name)),
                                       cv2.imread(str(sample / "color" / name)),
                                       err_msg=f"color/{name}")
+
 
 # ----------------------------------------------------------------------------- files
 
