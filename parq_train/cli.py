@@ -106,7 +106,9 @@ def parser() -> argparse.ArgumentParser:
                         "as the authors); recorded in the model card, so parq-run forms its "
                         "snippets the same way")
     p.add_argument("--iterations", type=positive_int, default=4,
-                   help="recurrent iterations supervised per step (default 4)")
+                   help="recurrent iterations supervised per step (default 4; 2 with 1.6x "
+                        "the steps in the same minutes scored lower at 2 iterations, and its 4 "
+                        "iterations no better than 1: see docs/demo-experiments.md)")
     p.add_argument("--lr", type=finite_positive_float, default=5e-4,
                    help="peak learning rate (default 5e-4)")
     p.add_argument("--backbone-lr", type=finite_non_negative_float, default=1.0,
