@@ -52,7 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"number of scenes to write (1-{MAX_SCENES})")
     p.add_argument("--seed", type=non_negative_int, required=True, metavar="S",
                    help="dataset seed (>= 0); scene k uses SeedSequence([S, k])")
-    p.add_argument("--start", type=at_most(non_negative_int, MAX_SCENES - 1), default=0, metavar="K",
+    p.add_argument("--start", type=at_most(non_negative_int, MAX_SCENES - 1), default=0,
+                   metavar="K",
                    help=f"index of the first scene (0-{MAX_SCENES - 1}, default 0): writes "
                         "scene_<K> .. scene_<K+N-1>, e.g. to extend a dataset or redo one "
                         "scene alone")
