@@ -151,6 +151,13 @@ def parser() -> argparse.ArgumentParser:
                         "(beyond the paper's objective, training only: the exported graphs "
                         "are the same; parq_train.dense). Default 0: none, the paper's "
                         "objective alone")
+    p.add_argument("--average-from", type=non_negative_int, default=0, metavar="STEP",
+                   help="write the mean of the weights after STEP, STEP + --average-every, "
+                        "... steps up to the last (which must be on that grid) instead of the "
+                        "last step's weights; the steps are the same (parq_train.average). "
+                        "Default 0: the last weights")
+    p.add_argument("--average-every", type=positive_int, default=2000, metavar="N",
+                   help="steps between the weights --average-from counts (default 2000)")
     p.add_argument("--snapshot-every", type=non_negative_int, default=2000,
                    help="also write OUTPUT's stem + '-stepN.pt' every N training steps, and "
                         "the run's whole state to OUTPUT's stem + '-state.pt' for --resume "
@@ -191,6 +198,11 @@ def check_arguments(args) -> None:
         raise ParqError(f"--frames {args.frames}: a scene needs at least {span} frames for a "
                         f"snippet of {VIEWS} views {args.gap} keyframe(s) apart "
                         f"(--gap {args.gap})")
+    if args.average_from and (args.average_from > args.steps
+                              or (args.steps - args.average_from) % args.average_every):
+        raise ParqError(f"--average-from {args.average_from}: the last step (--steps "
+                        f"{args.steps}) must be {args.average_from} plus a multiple of "
+                        f"--average-every {args.average_every}")
     check_outputs(args)
 
 
@@ -311,7 +323,9 @@ def run(args, argv) -> int:
                                  denoise_scale=args.denoise,
                                  denoise_class_weight=args.denoise_class_weight,
                                  mirror=args.mirror, dense_weight=args.dense_weight,
-                                 state=state, save_state=save_state)
+                                 average_from=args.average_from,
+                                 average_every=args.average_every, state=state,
+                                 save_state=save_state)
     trained = time.perf_counter() - start - generated - pretrained
     if state is not None:
         trained += state["seconds"]
@@ -325,7 +339,7 @@ def run(args, argv) -> int:
               "backbone_lr": args.backbone_lr, "denoise": args.denoise,
               "denoise_class_weight": args.denoise_class_weight,
               "mirror_augment": args.mirror, "dense_weight": args.dense_weight,
-              "attention": form,
+              "attention": form, "average": average_record(args),
               "precision": "bfloat16 autocast" if args.bf16 else "float32",
               "threads": torch.get_num_threads(),
               "minutes": dict(earlier["minutes"], train=round(trained / 60, 1)),
@@ -353,8 +367,17 @@ def recipe_of(args) -> dict:
             "fused_attention": args.fused_attention, "bf16": args.bf16,
             "denoise": args.denoise, "denoise_class_weight": args.denoise_class_weight,
             "mirror": args.mirror,
-            # only when set, so that the states of runs from before the flag still resume
-            **({"dense_weight": args.dense_weight} if args.dense_weight else {})}
+            # only when set, so that the states of runs from before the flags still resume
+            **({"dense_weight": args.dense_weight} if args.dense_weight else {}),
+            **({"average": average_record(args)} if args.average_from else {})}
+
+
+def average_record(args) -> dict | None:
+    """The weight mean a run writes (None: its last weights): the steps it counts."""
+    if not args.average_from:
+        return None
+    return {"from": args.average_from, "every": args.average_every,
+            "count": (args.steps - args.average_from) // args.average_every + 1}
 
 
 def now() -> str:

@@ -28,16 +28,22 @@ FORMAT = "parq-train training state"
 
 
 def capture(model: nn.Module, optimizer: torch.optim.Optimizer, rng: np.random.Generator,
-            order: list, running: dict, history: list, step: int, seconds: float) -> dict:
-    """Everything the loop needs to take step ``step`` (0-based: ``step`` steps are done)."""
-    return {"step": step, "seconds": float(seconds),
-            "model": {k: v.detach().clone() for k, v in model.state_dict().items()},
-            "optimizer": copy.deepcopy(optimizer.state_dict()),  # AdamW updates in place
-            "numpy_rng": rng.bit_generator.state,
-            "torch_rng": torch.get_rng_state(),
-            "order": [int(i) for i in order],
-            "running": {k: float(v) for k, v in running.items()},
-            "history": list(history)}
+            order: list, running: dict, history: list, step: int, seconds: float,
+            average=None) -> dict:
+    """Everything the loop needs to take step ``step`` (0-based: ``step`` steps are done),
+    and the weight mean's sums so far when the run keeps one (``average``, a
+    :class:`parq_train.average.WeightMean`)."""
+    state = {"step": step, "seconds": float(seconds),
+             "model": {k: v.detach().clone() for k, v in model.state_dict().items()},
+             "optimizer": copy.deepcopy(optimizer.state_dict()),  # AdamW updates in place
+             "numpy_rng": rng.bit_generator.state,
+             "torch_rng": torch.get_rng_state(),
+             "order": [int(i) for i in order],
+             "running": {k: float(v) for k, v in running.items()},
+             "history": list(history)}
+    if average is not None:
+        state["average"] = average.state_dict()
+    return state
 
 
 def restore(state: dict, model: nn.Module, optimizer: torch.optim.Optimizer,

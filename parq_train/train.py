@@ -22,6 +22,7 @@ from parq_export.backbone import FrozenBatchNorm2d
 from parq_export.model import PARQ
 
 from . import dense, denoise, mirror as mirror_augment, resume
+from .average import WeightMean
 from .loss import total_loss
 from .progress import minutes
 
@@ -102,8 +103,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
           model: PARQ | None = None, snapshot=None, snapshot_every: int = 0,
           backbone_lr: float = 1.0, form: str = "cached", bf16: bool = False,
           denoise_scale: float = 0.0, denoise_class_weight: float = 1.0,
-          mirror: bool = False, dense_weight: float = 0.0, state: dict | None = None,
-          save_state=None) -> tuple:
+          mirror: bool = False, dense_weight: float = 0.0, average_from: int = 0,
+          average_every: int = 2000, state: dict | None = None, save_state=None) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
 
@@ -123,7 +124,9 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     ``dense_weight`` above 0 adds :mod:`parq_train.dense`'s auxiliary loss on the backbone's
     features times that weight (the snippets need their dense targets: ``load_scenes(...,
     dense=True)``); its probe trains with the model and is dropped at the end; 0 trains
-    exactly as before.
+    exactly as before.  ``average_from`` above 0 returns the mean of the weights after
+    ``average_from``, ``average_from + average_every``, ... steps, the last of them the run's
+    last step (:mod:`parq_train.average`); the steps taken are the same either way.
 
     ``save_state(state)``, if given, is called at the snapshots' steps with the whole state of
     the run (:func:`parq_train.resume.capture`); ``state`` is such a state to continue from,
@@ -152,9 +155,17 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
                                    for (scale, decay), params in groups.items()], lr=lr)
     folds = torch.as_tensor(folds_of_class)
     history, order, running, first, seconds = [], [], {}, 0, 0.0
+    weight_mean = None
+    if average_from:
+        if average_from > steps or (steps - average_from) % average_every:
+            raise ValueError(f"steps {steps} is not on the weight mean's grid "
+                             f"({average_from} + k * {average_every})")
+        weight_mean = WeightMean(average_from, average_every)
     if state is not None:
         first, seconds, order, running, history = resume.restore(state, trained, optimizer,
                                                                  rng)
+        if weight_mean is not None:
+            weight_mean.load_state_dict(state["average"])
     start = time.perf_counter() - seconds
     for step in range(first, steps):
         if len(order) < batch_size:
@@ -197,6 +208,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
         loss.backward()
         torch.nn.utils.clip_grad_norm_(trained.parameters(), 1.0)
         optimizer.step()
+        if weight_mean is not None and weight_mean.due(step + 1):
+            weight_mean.add(model)
         for k, v in dict(parts, total=float(loss.detach())).items():
             running[k] = running.get(k, 0.0) + v
         if (step + 1) % log_every == 0 or step + 1 == steps:
@@ -213,10 +226,13 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
         if snapshot_every and (step + 1) % snapshot_every == 0 and step + 1 < steps:
             if save_state is not None:
                 save_state(resume.capture(trained, optimizer, rng, order, running, history,
-                                          step + 1, time.perf_counter() - start))
+                                          step + 1, time.perf_counter() - start,
+                                          average=weight_mean))
             if snapshot is not None:
                 snapshot(swap_norms(copy.deepcopy(model), to_trainable=False).eval(), step + 1)
     if hook is not None:
         hook.remove()
+    if weight_mean is not None:
+        weight_mean.load_into(model)
     model = swap_norms(model, to_trainable=False).eval()
     return model, history

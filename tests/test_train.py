@@ -767,6 +767,10 @@ def test_parq_train_tries_the_output_folder_rather_than_trusting_its_permissions
     (["--frames", "2"], "--frames 2: a scene needs at least 3 frames"),
     (["--data", ""], "--data: the path is empty"),
     (["--pretrained", ""], "--pretrained: the path is empty"),
+    (["--average-from", "-1"], "--average-from: -1 must not be negative"),
+    (["--average-from", "2"], "--average-from 2: the last step (--steps 1) must be 2 plus a "),
+    (["--steps", "5", "--average-from", "2"], "must be 2 plus a multiple of --average-every"),
+    (["--average-every", "0"], "--average-every: 0 must be"),
 ])
 def test_parq_train_refuses_bad_numbers_before_any_work(flag, needle, tmp_path, capsys,
                                                         monkeypatch, no_work):
@@ -781,7 +785,8 @@ def test_parq_train_checks_pass_for_a_good_command_and_leave_nothing(tmp_path):
 
     args = cli.parser().parse_args([str(tmp_path / "x.pt"), *TINY_RUN, "--seed", str(2 ** 64 - 1),
                                     "--pretrain-steps", "3", "--snapshot-every", "2",
-                                    "--denoise", "0.5", "--backbone-lr", "0"])
+                                    "--denoise", "0.5", "--backbone-lr", "0",
+                                    "--average-from", "1", "--average-every", "3"])
     cli.check_arguments(args)
     assert not any(tmp_path.iterdir())
 
