@@ -419,7 +419,9 @@ def best_of(table: list, criterion: Criterion = SUM) -> dict:
 
 
 def main(argv=None) -> int:
-    p = OneLineParser(prog="python -m parq_train.tune", description=__doc__.splitlines()[0])
+    # the docstring's first paragraph: its first line alone stops mid-sentence
+    p = OneLineParser(prog="python -m parq_train.tune",
+                      description=" ".join(__doc__.split("\n\n")[0].split()))
     p.add_argument("checkpoint", type=pathlib.Path,
                    help="trained checkpoint (parq-train), or a model folder (parq-export)")
     p.add_argument("--data", type=pathlib.Path, nargs="+", default=[pathlib.Path("data/val")],
