@@ -18,10 +18,9 @@ import argparse
 import pathlib
 import sys
 
-import torch
-
 from parq_export import checkpoint
 from parq_runtime.errors import ParqError
+from parq_train.average import WeightMean
 
 
 def average(paths: list) -> checkpoint.Checkpoint:
@@ -32,14 +31,11 @@ def average(paths: list) -> checkpoint.Checkpoint:
         if other.state_dict.keys() != first.state_dict.keys() or any(
                 other.state_dict[k].shape != v.shape for k, v in first.state_dict.items()):
             raise ParqError(f"{path}: not the architecture of {paths[0]}")
-    state = {}
-    for key, tensor in first.state_dict.items():
-        if tensor.is_floating_point():
-            total = sum(c.state_dict[key].double() for c in loaded)
-            state[key] = (total / len(loaded)).to(tensor.dtype)
-        else:
-            state[key] = tensor
-    return checkpoint.Checkpoint(first.config, state, first.layout, "")
+    mean = WeightMean(start=1, every=1)
+    for other in loaded:
+        mean.add(other.state_dict)
+    return checkpoint.Checkpoint(first.config, mean.mean_state(first.state_dict), first.layout,
+                                 "")
 
 
 def main() -> None:

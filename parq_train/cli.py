@@ -155,7 +155,8 @@ def parser() -> argparse.ArgumentParser:
                    help="write the mean of the weights after STEP, STEP + --average-every, "
                         "... steps up to the last (which must be on that grid) instead of the "
                         "last step's weights; the steps are the same (parq_train.average). "
-                        "Default 0: the last weights")
+                        "Default 0: the last weights (the demo's mean from 12000 scored "
+                        "level with them held out, see docs/demo-experiments.md)")
     p.add_argument("--average-every", type=positive_int, default=2000, metavar="N",
                    help="steps between the weights --average-from counts (default 2000)")
     p.add_argument("--snapshot-every", type=non_negative_int, default=2000,

@@ -209,7 +209,7 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
         torch.nn.utils.clip_grad_norm_(trained.parameters(), 1.0)
         optimizer.step()
         if weight_mean is not None and weight_mean.due(step + 1):
-            weight_mean.add(model)
+            weight_mean.add(model.state_dict())
         for k, v in dict(parts, total=float(loss.detach())).items():
             running[k] = running.get(k, 0.0) + v
         if (step + 1) % log_every == 0 or step + 1 == steps:

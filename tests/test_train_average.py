@@ -31,7 +31,7 @@ def test_the_mean_is_of_the_floating_point_state_and_keeps_the_integer_counts():
             model[1].running_var.fill_(2.0 ** k)
         model[1].num_batches_tracked.fill_(10 + k)
         seen.append({n: v.clone() for n, v in model.state_dict().items()})
-        mean.add(model)
+        mean.add(model.state_dict())
     mean.load_into(model)
     state = model.state_dict()
     assert torch.equal(state["0.weight"], torch.full((2, 3), 1.0))
