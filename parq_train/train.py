@@ -19,6 +19,7 @@ import torch
 from torch import nn
 
 from parq_export.backbone import FrozenBatchNorm2d
+from parq_export.layer import DecoderLayer
 from parq_export.model import PARQ
 
 from . import dense, denoise, mirror as mirror_augment, resume
@@ -42,6 +43,14 @@ def swap_norms(module: nn.Module, to_trainable: bool) -> nn.Module:
                 getattr(new, key).copy_(getattr(child, key))
         setattr(module, name, new)
     return module
+
+
+def set_dropout(model: nn.Module, rate: float, attention: float = 0.0) -> None:
+    """The training dropout of the model's decoder layer(s): ``rate`` on the residual branches
+    and the FFN, ``attention`` on the attention weights (DecoderLayer)."""
+    for module in model.modules():
+        if isinstance(module, DecoderLayer):
+            module.dropout, module.attention_dropout = rate, attention
 
 
 def init_reference_points(model: PARQ, generator: torch.Generator, snippets=None) -> None:
@@ -104,7 +113,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
           backbone_lr: float = 1.0, form: str = "cached", bf16: bool = False,
           denoise_scale: float = 0.0, denoise_class_weight: float = 1.0,
           mirror: bool = False, dense_weight: float = 0.0, average_from: int = 0,
-          average_every: int = 2000, state: dict | None = None, save_state=None) -> tuple:
+          average_every: int = 2000, dropout: float = 0.0, attention_dropout: float = 0.0,
+          state: dict | None = None, save_state=None) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
 
@@ -127,6 +137,10 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     exactly as before.  ``average_from`` above 0 returns the mean of the weights after
     ``average_from``, ``average_from + average_every``, ... steps, the last of them the run's
     last step (:mod:`parq_train.average`); the steps taken are the same either way.
+    ``dropout`` and ``attention_dropout`` above 0 train the decoder layer with the authors'
+    dropout at those rates, on its residual branches and FFN and on its attention weights
+    (:class:`parq_export.layer.DecoderLayer`; 0.1 both in their configuration); 0 trains
+    exactly as before.  Both are set back to 0 on the returned model.
 
     ``save_state(state)``, if given, is called at the snapshots' steps with the whole state of
     the run (:func:`parq_train.resume.capture`); ``state`` is such a state to continue from,
@@ -137,6 +151,7 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     if model is None:
         model = new_model(config, seed, snippets)
     model.train()
+    set_dropout(model, dropout, attention_dropout)
     probe, captured, hook = None, {}, None
     if dense_weight > 0:
         probe = dense.DenseProbe(config.feature_dim, len(config.classes))
@@ -234,5 +249,6 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
         hook.remove()
     if weight_mean is not None:
         weight_mean.load_into(model)
+    set_dropout(model, 0.0)
     model = swap_norms(model, to_trainable=False).eval()
     return model, history

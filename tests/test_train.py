@@ -341,6 +341,43 @@ def test_bfloat16_autocast_training_learns_and_keeps_float32_weights():
     assert not all(torch.equal(a[k], b[k]) for k in a)
 
 
+def test_dropout_acts_in_training_only_and_leaves_the_weights_form_unchanged():
+    """parq-train --dropout: in training mode the decoder layer's outputs are random (every
+    form), in evaluation mode they are those of the layer without dropout; training with it
+    is seeded (the same seed, the same weights), learns, changes the weights, and returns a
+    model whose layer has dropout 0 and the same state-dict keys."""
+    config = tiny_config(num_queries=16)
+    rng = np.random.default_rng(1)
+    camera, T_local_camera = verify.random_snippet(rng, 3, config)
+    w, h = config.image_size
+    images = torch.rand(1, 3, 3, h, w)
+    camera, T_local_camera = torch.from_numpy(camera)[None], torch.from_numpy(T_local_camera)[None]
+    model = PARQ(config)
+    with torch.no_grad():
+        plain = model(images, camera, T_local_camera, iterations=2)[-1]["center"]
+        train.set_dropout(model, 0.3, attention=0.3)
+        for form in ("cached", "fused"):
+            model.train()
+            noisy = [model(images, camera, T_local_camera, iterations=2, form=form)[-1]["center"]
+                     for _ in range(2)]
+            assert not torch.allclose(noisy[0], noisy[1])
+            model.eval()
+            torch.testing.assert_close(
+                model(images, camera, T_local_camera, iterations=2, form=form)[-1]["center"],
+                plain, rtol=1e-5, atol=1e-5)
+    snippets = tiny_snippets(config)
+    kwargs = dict(seed=0, folds_of_class=[1] * 9, batch_size=2, iterations=2, lr=2e-3,
+                  log=lambda *_: None, log_every=10)
+    model, history = train.train(config, snippets, steps=60, dropout=0.1, **kwargs)
+    assert history[-1]["total"] < 0.6 * history[0]["total"], history
+    assert model.layer.decoder.dropout == model.layer.decoder.attention_dropout == 0.0
+    a, b, c = (train.train(config, snippets, steps=3, dropout=rate, **kwargs)[0].state_dict()
+               for rate in (0.1, 0.1, 0.0))
+    assert a.keys() == c.keys() == PARQ(config).state_dict().keys()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not all(torch.equal(a[k], c[k]) for k in a)
+
+
 def test_fused_attention_form_matches_cached_in_outputs_and_gradients():
     """Training uses torch's fused attention kernel (form "fused"); it must compute what the
     cached form (checked against the authors' arithmetic in test_golden) computes."""
@@ -771,6 +808,8 @@ def test_parq_train_tries_the_output_folder_rather_than_trusting_its_permissions
     (["--average-from", "2"], "--average-from 2: the last step (--steps 1) must be 2 plus a "),
     (["--steps", "5", "--average-from", "2"], "must be 2 plus a multiple of --average-every"),
     (["--average-every", "0"], "--average-every: 0 must be"),
+    (["--dropout", "1"], "--dropout: 1.0 must be at least 0 and below 1"),
+    (["--attention-dropout", "nan"], "--attention-dropout: nan must be at least 0 and below 1"),
 ])
 def test_parq_train_refuses_bad_numbers_before_any_work(flag, needle, tmp_path, capsys,
                                                         monkeypatch, no_work):
