@@ -50,7 +50,7 @@ def set_dropout(model: nn.Module, rate: float, attention: float = 0.0) -> None:
     and the FFN, ``attention`` on the attention weights (DecoderLayer)."""
     for module in model.modules():
         if isinstance(module, DecoderLayer):
-            module.dropout, module.attention_dropout = rate, attention
+            module.set_dropout(rate, attention)
 
 
 def init_reference_points(model: PARQ, generator: torch.Generator, snippets=None) -> None:

@@ -355,16 +355,17 @@ def test_dropout_acts_in_training_only_and_leaves_the_weights_form_unchanged():
     model = PARQ(config)
     with torch.no_grad():
         plain = model(images, camera, T_local_camera, iterations=2)[-1]["center"]
-        train.set_dropout(model, 0.3, attention=0.3)
-        for form in ("cached", "fused"):
-            model.train()
-            noisy = [model(images, camera, T_local_camera, iterations=2, form=form)[-1]["center"]
-                     for _ in range(2)]
-            assert not torch.allclose(noisy[0], noisy[1])
-            model.eval()
-            torch.testing.assert_close(
-                model(images, camera, T_local_camera, iterations=2, form=form)[-1]["center"],
-                plain, rtol=1e-5, atol=1e-5)
+        for rates in ((0.3, 0.0), (0.0, 0.3)):     # residual branches and FFN; attention
+            train.set_dropout(model, *rates)
+            for form in ("cached", "fused", "folded", "reference"):
+                model.train()
+                noisy = [model(images, camera, T_local_camera, iterations=2,
+                               form=form)[-1]["center"] for _ in range(2)]
+                assert not torch.allclose(noisy[0], noisy[1]), (rates, form)
+                model.eval()
+                torch.testing.assert_close(
+                    model(images, camera, T_local_camera, iterations=2, form=form)[-1]["center"],
+                    plain, rtol=1e-5, atol=1e-5)
     snippets = tiny_snippets(config)
     kwargs = dict(seed=0, folds_of_class=[1] * 9, batch_size=2, iterations=2, lr=2e-3,
                   log=lambda *_: None, log_every=10)
