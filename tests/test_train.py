@@ -341,17 +341,22 @@ def test_bfloat16_autocast_training_learns_and_keeps_float32_weights():
     assert not all(torch.equal(a[k], b[k]) for k in a)
 
 
+def random_snippet_batch(config):
+    """A batch of one random 3-view snippet for PARQ.forward: images (1, 3, 3, H, W), camera
+    and T_local_camera as torch tensors with their batch axis."""
+    camera, T_local_camera = verify.random_snippet(np.random.default_rng(1), 3, config)
+    w, h = config.image_size
+    images = torch.rand(1, 3, 3, h, w)
+    return images, torch.from_numpy(camera)[None], torch.from_numpy(T_local_camera)[None]
+
+
 def test_dropout_acts_in_training_only_and_leaves_the_weights_form_unchanged():
     """parq-train --dropout: in training mode the decoder layer's outputs are random (every
     form), in evaluation mode they are those of the layer without dropout; training with it
     is seeded (the same seed, the same weights), learns, changes the weights, and returns a
     model whose layer has dropout 0 and the same state-dict keys."""
     config = tiny_config(num_queries=16)
-    rng = np.random.default_rng(1)
-    camera, T_local_camera = verify.random_snippet(rng, 3, config)
-    w, h = config.image_size
-    images = torch.rand(1, 3, 3, h, w)
-    camera, T_local_camera = torch.from_numpy(camera)[None], torch.from_numpy(T_local_camera)[None]
+    images, camera, T_local_camera = random_snippet_batch(config)
     model = PARQ(config)
     with torch.no_grad():
         plain = model(images, camera, T_local_camera, iterations=2)[-1]["center"]
@@ -383,11 +388,7 @@ def test_fused_attention_form_matches_cached_in_outputs_and_gradients():
     """Training uses torch's fused attention kernel (form "fused"); it must compute what the
     cached form (checked against the authors' arithmetic in test_golden) computes."""
     config = tiny_config(num_queries=16)
-    rng = np.random.default_rng(1)
-    camera, T_local_camera = verify.random_snippet(rng, 3, config)
-    w, h = config.image_size
-    images = torch.rand(1, 3, 3, h, w)
-    camera, T_local_camera = torch.from_numpy(camera)[None], torch.from_numpy(T_local_camera)[None]
+    images, camera, T_local_camera = random_snippet_batch(config)
     model = PARQ(config)
     results = {}
     for form in ("cached", "fused"):
