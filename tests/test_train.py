@@ -894,3 +894,25 @@ def test_parq_train_refuses_a_batch_larger_than_its_snippets(tmp_path, capsys, m
     assert err.splitlines()[-1] == ("parq-train: error: --batch 4: the 0 training scenes hold "
                                     "only 3 snippets; lower --batch or raise --scenes")
     assert not (tmp_path / "x.pt").exists()
+
+
+def test_parq_train_defaults_are_the_shipped_demo_recipe():
+    """`parq-train OUT` with no other flag trains what models/parq-demo was trained with, so
+    the one command with a seed is the demo's recipe (its card records every setting)."""
+    from parq_train import cli
+
+    record = json.loads((pathlib.Path(__file__).parents[1] / "models" / "parq-demo"
+                         / "model.json").read_text())["extra"]["training"]
+    args = cli.parser().parse_args(["out.pt"])
+    assert (args.seed, args.scenes, args.frames) == (record["seed"], record["data"]["scenes"],
+                                                     record["data"]["frames"])
+    assert args.pretrain_steps == record["pretrain_steps"]
+    for flag, field in [("steps", "steps"), ("batch", "batch"), ("iterations", "iterations"),
+                        ("gap", "gap"), ("lr", "lr"), ("backbone_lr", "backbone_lr"),
+                        ("denoise", "denoise"), ("denoise_class_weight", "denoise_class_weight"),
+                        ("mirror", "mirror_augment"), ("dense_weight", "dense_weight"),
+                        ("dropout", "dropout"), ("attention_dropout", "attention_dropout")]:
+        assert getattr(args, flag) == record[field], flag
+    assert (args.bf16, args.fused_attention, args.average_from) == (False, False, 0)
+    assert (record["precision"], record["attention"], record["average"]) == ("float32", "cached",
+                                                                            None)

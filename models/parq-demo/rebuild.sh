@@ -11,8 +11,8 @@ parq-synth data/val2 --scenes 120 --seed 2001 --frames 60 --width 160 --height 1
 # generates its 1600 training scenes of 30 frames into data/train1600, then trains (the demo
 # configuration names point sampling as its resize filter, so the card it exports to does too;
 # the shipped card got it by parq_export.card_rewrite on 2026-12-06, the weights unchanged)
-# (--dropout 0.1: the authors' training dropout on the decoder layer's residual branches and
-# FFN; docs/demo-experiments.md, "The authors' training dropout")
+# (--dropout 0.1, also the default, written out: the authors' training dropout on the decoder
+# layer's residual branches and FFN; docs/demo-experiments.md, "The authors' training dropout")
 parq-train work/demo.pt --seed 0 --data data/train1600 --scenes 1600 --frames 30 --jobs 2 \
     --dropout 0.1
 # ranks the learned queries (and chooses a post-processing for 2 x 32) on the 40 scenes of
