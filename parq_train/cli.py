@@ -264,7 +264,6 @@ def run(args, argv) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    form = "fused" if args.fused_attention else "cached"   # PARQ.forward's attention form
     config = demo_config(iterations=args.iterations, snippet_gap=args.gap)
     command = "parq-train " + " ".join(argv)
     recipe = recipe_of(args)
@@ -331,7 +330,8 @@ def run(args, argv) -> int:
                                  iterations=args.iterations, lr=args.lr, log=log,
                                  log_every=250, model=model, snapshot=snapshot,
                                  snapshot_every=args.snapshot_every,
-                                 backbone_lr=args.backbone_lr, form=form, bf16=args.bf16,
+                                 backbone_lr=args.backbone_lr, form=attention_form(args),
+                                 bf16=args.bf16,
                                  denoise_scale=args.denoise,
                                  denoise_class_weight=args.denoise_class_weight,
                                  mirror=args.mirror, dense_weight=args.dense_weight,
@@ -347,15 +347,7 @@ def run(args, argv) -> int:
                        "frames": args.frames, "folder": str(args.data),
                        "snippets": len(snippets)},
               "pretrain_steps": pre_record["steps"], "pretraining": pre_record,
-              "steps": args.steps, "batch": args.batch,
-              "iterations": args.iterations, "gap": args.gap, "lr": args.lr,
-              "backbone_lr": args.backbone_lr, "denoise": args.denoise,
-              "denoise_class_weight": args.denoise_class_weight,
-              "mirror_augment": args.mirror, "dense_weight": args.dense_weight,
-              "attention": form, "average": average_record(args), "dropout": args.dropout,
-              "attention_dropout": args.attention_dropout,
-              "precision": "bfloat16 autocast" if args.bf16 else "float32",
-              "threads": torch.get_num_threads(),
+              **settings_record(args), "threads": torch.get_num_threads(),
               "minutes": dict(earlier["minutes"], train=round(trained / 60, 1)),
               "finished": now(),
               "torch": str(torch.__version__), "cpu_count": os.cpu_count(),
@@ -368,6 +360,23 @@ def run(args, argv) -> int:
     state_path.unlink(missing_ok=True)
     print(json.dumps(record, indent=1), file=sys.stderr)
     return 0
+
+
+def settings_record(args) -> dict:
+    """The training settings the model card records (``extra.training``), as it names them."""
+    return {"steps": args.steps, "batch": args.batch,
+            "iterations": args.iterations, "gap": args.gap, "lr": args.lr,
+            "backbone_lr": args.backbone_lr, "denoise": args.denoise,
+            "denoise_class_weight": args.denoise_class_weight,
+            "mirror_augment": args.mirror, "dense_weight": args.dense_weight,
+            "attention": attention_form(args), "average": average_record(args),
+            "dropout": args.dropout, "attention_dropout": args.attention_dropout,
+            "precision": "bfloat16 autocast" if args.bf16 else "float32"}
+
+
+def attention_form(args) -> str:
+    """PARQ.forward's attention form in training."""
+    return "fused" if args.fused_attention else "cached"
 
 
 def recipe_of(args) -> dict:

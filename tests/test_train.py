@@ -907,12 +907,7 @@ def test_parq_train_defaults_are_the_shipped_demo_recipe():
     assert (args.seed, args.scenes, args.frames) == (record["seed"], record["data"]["scenes"],
                                                      record["data"]["frames"])
     assert args.pretrain_steps == record["pretrain_steps"]
-    for flag, field in [("steps", "steps"), ("batch", "batch"), ("iterations", "iterations"),
-                        ("gap", "gap"), ("lr", "lr"), ("backbone_lr", "backbone_lr"),
-                        ("denoise", "denoise"), ("denoise_class_weight", "denoise_class_weight"),
-                        ("mirror", "mirror_augment"), ("dense_weight", "dense_weight"),
-                        ("dropout", "dropout"), ("attention_dropout", "attention_dropout")]:
-        assert getattr(args, flag) == record[field], flag
-    assert (args.bf16, args.fused_attention, args.average_from) == (False, False, 0)
-    assert (record["precision"], record["attention"], record["average"]) == ("float32", "cached",
-                                                                            None)
+    settings = cli.settings_record(args)
+    assert {k: record[k] for k in settings} == settings
+    assert (settings["precision"], settings["attention"], settings["average"]) == (
+        "float32", "cached", None)
