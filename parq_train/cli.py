@@ -110,8 +110,9 @@ def parser() -> argparse.ArgumentParser:
                         "the steps in the same minutes scored lower at 2 iterations, and its 4 "
                         "iterations no better than 1: see docs/demo-experiments.md)")
     p.add_argument("--lr", type=finite_positive_float, default=5e-4,
-                   help="peak learning rate (default 5e-4; 1e-3 diverged in the demo's "
-                        "recipe, see docs/demo-experiments.md)")
+                   help="peak learning rate (default 5e-4; in the demo's recipe 1e-3 "
+                        "diverged and 3e-4 scored level held out, lower on validation: see "
+                        "docs/demo-experiments.md)")
     p.add_argument("--backbone-lr", type=finite_non_negative_float, default=1.0,
                    help="the pretrained ResNet-FPN's learning rate as a fraction of --lr "
                         "(default 1.0; 0 freezes it; 0.1 trained worse, see "
