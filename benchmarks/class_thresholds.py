@@ -31,7 +31,6 @@ import pathlib
 import sys
 import time
 
-import numpy as np
 
 import common
 import spread
