@@ -31,7 +31,6 @@ import pathlib
 import sys
 import time
 
-
 import common
 import spread
 import tradeoff
