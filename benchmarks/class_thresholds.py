@@ -12,8 +12,8 @@ fusion, support, scene NMS, floor prior, label vote):
    those records must give the card's tuned score (checked, printed);
 2. coordinate ascent: two sweeps over the classes in the card's order, each class's threshold
    set to the value of parq_train.tune's THRESHOLDS that scores best with the others fixed,
-   by the card's criterion (best F1@0.25 with F1@0.5 of at least 0.35; the current value wins
-   ties);
+   by the card's criterion (parq_train.tune.Criterion: best F1@0.25 with F1@0.5 of at least
+   0.35, then F1@0.5; the current value wins ties);
 3. one pass over the held-out scenes (seeds 3000 and 5000, 120 each, spread.py's cache), the
    card's threshold and the per-class ones scored on the same detections, the difference
    paired and bootstrapped as spread.py does.
@@ -58,22 +58,20 @@ def scene_pairs(records: list, thresholds: dict, post: dict, mirror: bool, sweep
                             post["floor_weight"], sweep)
 
 
-def f1s(pairs: list, classes) -> tuple:
-    """(F1@0.25, F1@0.5), pooled over the scenes as parq-eval pools them."""
+def f1s(pairs: list, classes) -> dict:
+    """{"f1@0.25": F, "f1@0.5": F}, pooled over the scenes as parq-eval pools them (the keys
+    parq_train.tune.Criterion ranks by)."""
     summed = spread.counts_of(pairs, classes).sum(axis=0)
-    return tuple(float(v) for v in spread.f1(summed))
+    return {f"f1@{t}": float(v) for t, v in zip(spread.THRESHOLDS, spread.f1(summed))}
 
 
-def ascend(records, classes, post, mirror, sweep, min_f1_50: float, sweeps: int = 2) -> tuple:
-    """(per-class thresholds, their validation F1s, the trace) by coordinate ascent from the
-    card's threshold for every class (module doc, step 2)."""
+def ascend(records, classes, post, mirror, sweep, criterion, thresholds: dict, best: dict,
+           sweeps: int = 2) -> tuple:
+    """(per-class thresholds, their validation F1s, the trace) by coordinate ascent from
+    ``thresholds``, which score ``best`` (module doc, step 2); ``criterion``: a
+    parq_train.tune.Criterion."""
     from parq_train import tune
 
-    def key(scores):
-        return (scores[1] >= min_f1_50, scores[0])
-
-    thresholds = {c: float(post["score_threshold"]) for c in classes}
-    best = f1s(scene_pairs(records, thresholds, post, mirror, sweep), classes)
     trace = []
     for n in range(sweeps):
         for c in classes:
@@ -82,13 +80,33 @@ def ascend(records, classes, post, mirror, sweep, min_f1_50: float, sweeps: int 
                     continue
                 trial = dict(thresholds, **{c: float(value)})
                 scores = f1s(scene_pairs(records, trial, post, mirror, sweep), classes)
-                if key(scores) > key(best):
+                if criterion.key(scores) > criterion.key(best):
                     thresholds, best = trial, scores
-            trace.append({"sweep": n + 1, "class": c, "threshold": thresholds[c],
-                          "f1@0.25": best[0], "f1@0.5": best[1]})
-            print(f"sweep {n + 1} {c:>10}: {thresholds[c]:.2f}  F1@0.25 {best[0]:.4f}  "
-                  f"F1@0.5 {best[1]:.4f}", file=sys.stderr, flush=True)
+            trace.append({"sweep": n + 1, "class": c, "threshold": thresholds[c], **best})
+            print(f"sweep {n + 1} {c:>10}: {thresholds[c]:.2f}  F1@0.25 {best['f1@0.25']:.4f}"
+                  f"  F1@0.5 {best['f1@0.5']:.4f}", file=sys.stderr, flush=True)
     return thresholds, best, trace
+
+
+def markdown(result: dict, classes: list) -> str:
+    """The results table of main's ``result``."""
+    thresholds = result["thresholds"]
+    iters, queries, mirror = result["setting"]
+    lines = [f"Per-class score thresholds chosen on {result['validation_scenes']} validation "
+             f"scenes, scored on {result['held_out']}; {result['model']} at {iters} x "
+             f"{queries}{', mirror runs' if mirror else ''}, the rest its card's "
+             "post-processing (benchmarks/class_thresholds.py).", "",
+             "| class | " + " | ".join(classes) + " |",
+             "|---|" + "---|" * len(classes),
+             "| threshold | " + " | ".join(f"{thresholds[c]:.2f}" for c in classes) + " |", "",
+             "| thresholds | validation F1@0.25 / F1@0.5 | held out F1@0.25 | paired "
+             "| held out F1@0.5 | paired |", "|---|---|---|---|---|---|"]
+    for name, key, row in zip(("the card's one", "per class"), ("card", "per_class"),
+                              result["held_out_rows"]):
+        val = result["validation"][key]
+        lines.append(f"| {name} | {val['f1@0.25']:.4f} / {val['f1@0.5']:.4f} | "
+                     + " | ".join(spread.paired_cells(row)) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def main():
@@ -124,9 +142,11 @@ def main():
     card_thresholds = {c: float(post["score_threshold"]) for c in classes}
     card_val = f1s(scene_pairs(records, card_thresholds, post, mirror, sweep), classes)
     print(f"validation, {len(folders)} scenes, the card's threshold: F1@0.25 "
-          f"{card_val[0]:.4f}  F1@0.5 {card_val[1]:.4f}", file=sys.stderr, flush=True)
+          f"{card_val['f1@0.25']:.4f}  F1@0.5 {card_val['f1@0.5']:.4f}", file=sys.stderr,
+          flush=True)
     thresholds, chosen_val, trace = ascend(records, classes, post, mirror, sweep,
-                                           args.min_f1_50)
+                                           tune.Criterion(args.min_f1_50), card_thresholds,
+                                           card_val)
 
     scenes, _ = tradeoff.scenes_from_arguments(args)
     held = tune.run_once(detector, scenes, iters, queries, mirror=mirror)
@@ -140,28 +160,11 @@ def main():
               "card_threshold": float(post["score_threshold"]), "thresholds": thresholds,
               "validation": {"card": card_val, "per_class": chosen_val}, "trace": trace,
               "held_out_rows": rows, "minutes": (time.perf_counter() - start) / 60}
-    lines = [f"Per-class score thresholds chosen on {len(folders)} validation scenes, scored "
-             f"on {tradeoff.held_out_text(args)}; {args.model} at {iters} x {queries}"
-             f"{', mirror runs' if mirror else ''}, the rest its card's post-processing "
-             "(benchmarks/class_thresholds.py).", "",
-             "| class | " + " | ".join(classes) + " |",
-             "|---|" + "---|" * len(classes),
-             "| threshold | " + " | ".join(f"{thresholds[c]:.2f}" for c in classes) + " |", "",
-             "| thresholds | validation F1@0.25 / F1@0.5 | held out F1@0.25 | paired "
-             "| held out F1@0.5 | paired |", "|---|---|---|---|---|---|"]
-    for name, val, row in (("the card's one", card_val, rows[0]),
-                           ("per class", chosen_val, rows[1])):
-        cells = []
-        for t in spread.THRESHOLDS:
-            e = row[t]
-            cells.append(f"{e['f1']:.3f} ({e['interval90'][0]:.3f}-{e['interval90'][1]:.3f})")
-            cells.append(f"{e['difference']:+.3f} ({e['difference_interval90'][0]:+.3f} to "
-                         f"{e['difference_interval90'][1]:+.3f})" if "difference" in e else "")
-        lines.append(f"| {name} | {val[0]:.4f} / {val[1]:.4f} | " + " | ".join(cells) + " |")
+    text = markdown(result, classes)
     out = pathlib.Path(args.out)
-    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    out.with_suffix(".md").write_text(text)
     out.with_suffix(".json").write_text(json.dumps(result, indent=1) + "\n")
-    print("\n".join(lines))
+    print(text, end="")
 
 
 if __name__ == "__main__":
