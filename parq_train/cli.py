@@ -105,6 +105,10 @@ def parser() -> argparse.ArgumentParser:
                    help="keyframes between a training snippet's views (default 1: consecutive, "
                         "as the authors); recorded in the model card, so parq-run forms its "
                         "snippets the same way")
+    p.add_argument("--queries", type=positive_int, default=64,
+                   help="learned queries, the model's reference points (default 64, the "
+                        "demo's; a step with 128 costs about 1.34 times as much, see "
+                        "docs/demo-experiments.md)")
     p.add_argument("--iterations", type=positive_int, default=4,
                    help="recurrent iterations supervised per step (default 4; 2 with 1.6x "
                         "the steps in the same minutes scored lower at 2 iterations, and its 4 "
@@ -197,13 +201,15 @@ def check_arguments(args) -> None:
     """What the parser cannot check alone, before any work: the limits of parq-synth and the
     runtime, whether a scene's frames hold a snippet, and the outputs (:func:`check_outputs`).
     ParqError naming the flag or path."""
+    from parq_export.export import MAX_QUERIES
     from parq_runtime.keyframes import span_of
     from parq_runtime.model_card import MAX_ITERATIONS
     from parq_synth.cli import MAX_FRAMES, MAX_SCENES
 
     for flag, value, limit in (("--scenes", args.scenes, MAX_SCENES),
                                ("--frames", args.frames, MAX_FRAMES),
-                               ("--iterations", args.iterations, MAX_ITERATIONS)):
+                               ("--iterations", args.iterations, MAX_ITERATIONS),
+                               ("--queries", args.queries, MAX_QUERIES)):
         if value > limit:
             raise ParqError(f"{flag} {value}: at most {limit}")
     span = span_of(VIEWS, args.gap)
@@ -265,7 +271,8 @@ def run(args, argv) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    config = demo_config(iterations=args.iterations, snippet_gap=args.gap)
+    config = demo_config(iterations=args.iterations, snippet_gap=args.gap,
+                         num_queries=args.queries)
     command = "parq-train " + " ".join(argv)
     recipe = recipe_of(args)
     state_path = resume.path_for(args.output)
@@ -366,8 +373,8 @@ def run(args, argv) -> int:
 def settings_record(args) -> dict:
     """The training settings the model card records (``extra.training``), as it names them."""
     return {"steps": args.steps, "batch": args.batch,
-            "iterations": args.iterations, "gap": args.gap, "lr": args.lr,
-            "backbone_lr": args.backbone_lr, "denoise": args.denoise,
+            "iterations": args.iterations, "queries": args.queries, "gap": args.gap,
+            "lr": args.lr, "backbone_lr": args.backbone_lr, "denoise": args.denoise,
             "denoise_class_weight": args.denoise_class_weight,
             "mirror_augment": args.mirror, "dense_weight": args.dense_weight,
             "attention": attention_form(args), "average": average_record(args),
@@ -395,7 +402,8 @@ def recipe_of(args) -> dict:
             **({"dense_weight": args.dense_weight} if args.dense_weight else {}),
             **({"average": average_record(args)} if args.average_from else {}),
             **({"dropout": args.dropout} if args.dropout else {}),
-            **({"attention_dropout": args.attention_dropout} if args.attention_dropout else {})}
+            **({"attention_dropout": args.attention_dropout} if args.attention_dropout else {}),
+            **({"queries": args.queries} if args.queries != 64 else {})}
 
 
 def average_record(args) -> dict | None:

@@ -716,6 +716,25 @@ def test_parq_train_resume_continues_an_interrupted_command(tmp_path, capsys, mo
     assert "no training state to resume" in capsys.readouterr().err
 
 
+def test_parq_train_queries_sets_the_learned_queries_and_the_card_records_them(tmp_path):
+    """--queries N trains N reference points, set from the training targets, and records N
+    in the checkpoint's training record and in the recipe a --resume must repeat."""
+    from parq_export import checkpoint
+    from parq_train import cli
+
+    out = tmp_path / "q.pt"
+    assert cli.main([str(out), "--seed", "0", "--data", str(tmp_path / "train"), *TINY_RUN,
+                     "--queries", "5"]) == 0
+    loaded = checkpoint.load(out)
+    assert loaded.config.num_queries == 5
+    assert loaded.model().refpoint.weight.shape == (5, 3)
+    assert loaded.config.extra["training"]["queries"] == 5
+    recipe = cli.recipe_of(cli.parser().parse_args([str(out), "--queries", "5"]))
+    assert recipe["queries"] == 5
+    # the demo's 64 leaves the recipe as it was, so that older states still resume
+    assert "queries" not in cli.recipe_of(cli.parser().parse_args([str(out)]))
+
+
 # ------------------------------------------------------------ parq-train's argument checks
 
 TINY_RUN = ["--scenes", "1", "--frames", "8", "--jobs", "1", "--steps", "1", "--batch", "1",
@@ -802,6 +821,8 @@ def test_parq_train_tries_the_output_folder_rather_than_trusting_its_permissions
     (["--scenes", "100000000"], "--scenes 100000000: at most 1000000"),
     (["--frames", "100000000000"], "--frames 100000000000: at most 100000"),
     (["--iterations", "1001"], "--iterations 1001: at most 1000"),
+    (["--queries", "1025"], "--queries 1025: at most 1024"),
+    (["--queries", "0"], "--queries: 0 must be"),
     (["--gap", "4"], "--frames 8: a scene needs at least 9 frames"),
     (["--frames", "2"], "--frames 2: a scene needs at least 3 frames"),
     (["--data", ""], "--data: the path is empty"),
