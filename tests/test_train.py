@@ -922,13 +922,16 @@ def test_parq_train_defaults_are_the_shipped_demo_recipe():
     the one command with a seed is the demo's recipe (its card records every setting)."""
     from parq_train import cli
 
-    record = json.loads((pathlib.Path(__file__).parents[1] / "models" / "parq-demo"
-                         / "model.json").read_text())["extra"]["training"]
+    card = json.loads((pathlib.Path(__file__).parents[1] / "models" / "parq-demo"
+                       / "model.json").read_text())
+    record = card["extra"]["training"]
     args = cli.parser().parse_args(["out.pt"])
     assert (args.seed, args.scenes, args.frames) == (record["seed"], record["data"]["scenes"],
                                                      record["data"]["frames"])
     assert args.pretrain_steps == record["pretrain_steps"]
     settings = cli.settings_record(args)
+    # the demo's card predates --queries: its count is the config's
+    assert settings.pop("queries") == card["config"]["num_queries"]
     assert {k: record[k] for k in settings} == settings
     assert (settings["precision"], settings["attention"], settings["average"]) == (
         "float32", "cached", None)
