@@ -59,6 +59,9 @@ def given_path(text: str) -> pathlib.Path:
     return pathlib.Path(text)
 
 
+DEMO_QUERIES = 64   # the demo's learned queries (parq-train --queries)
+
+
 def demo_config(**overrides):
     """The shipped demo model: ResNet18 at a quarter width, 128-channel features, 160x120,
     frames of other sizes point-sampled to it as parq-synth renders its training frames
@@ -66,7 +69,7 @@ def demo_config(**overrides):
     from parq_export.config import PARQConfig
 
     base = dict(resnet_depth=18, resnet_width=16, fpn_channels=32, heads=4, ffn_dim=256,
-                num_queries=64, ray_samples=32, image_size=(160, 120), iterations=4,
+                num_queries=DEMO_QUERIES, ray_samples=32, image_size=(160, 120), iterations=4,
                 image_filter="point")
     base.update(overrides)
     return PARQConfig(**base)
@@ -105,7 +108,7 @@ def parser() -> argparse.ArgumentParser:
                    help="keyframes between a training snippet's views (default 1: consecutive, "
                         "as the authors); recorded in the model card, so parq-run forms its "
                         "snippets the same way")
-    p.add_argument("--queries", type=positive_int, default=64,
+    p.add_argument("--queries", type=positive_int, default=DEMO_QUERIES,
                    help="learned queries, the model's reference points (default 64, the "
                         "demo's; 128 cost 1.5 times a step and, trained for 12,500 steps, "
                         "scored 0.03 lower held out: see docs/demo-experiments.md)")
@@ -403,7 +406,7 @@ def recipe_of(args) -> dict:
             **({"average": average_record(args)} if args.average_from else {}),
             **({"dropout": args.dropout} if args.dropout else {}),
             **({"attention_dropout": args.attention_dropout} if args.attention_dropout else {}),
-            **({"queries": args.queries} if args.queries != 64 else {})}
+            **({"queries": args.queries} if args.queries != DEMO_QUERIES else {})}
 
 
 def average_record(args) -> dict | None:

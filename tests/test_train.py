@@ -717,8 +717,8 @@ def test_parq_train_resume_continues_an_interrupted_command(tmp_path, capsys, mo
 
 
 def test_parq_train_queries_sets_the_learned_queries_and_the_card_records_them(tmp_path):
-    """--queries N trains N reference points, set from the training targets, and records N
-    in the checkpoint's training record and in the recipe a --resume must repeat."""
+    """--queries N trains N reference points and records N in the checkpoint's training
+    record and in the recipe a --resume must repeat."""
     from parq_export import checkpoint
     from parq_train import cli
 
