@@ -33,6 +33,7 @@ HELD_OUT_SEED = 3000
 VIEWS = 3                   # views of a training snippet (data.load_scenes), the authors' 3
 MAX_SEED = 2 ** 64 - 1      # torch.manual_seed takes seeds below 2**64
 MAX_PROCESSES = 1024        # --jobs and --threads: more is a mistyped number (torch crashes)
+DEMO_QUERIES = 64           # the demo's learned queries (--queries)
 
 
 # Argument types: a bad value is refused by the parser, before anything is generated.
@@ -57,9 +58,6 @@ def given_path(text: str) -> pathlib.Path:
     if not text:
         raise argparse.ArgumentTypeError("the path is empty")
     return pathlib.Path(text)
-
-
-DEMO_QUERIES = 64   # the demo's learned queries (parq-train --queries)
 
 
 def demo_config(**overrides):
