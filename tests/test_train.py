@@ -930,8 +930,7 @@ def test_parq_train_defaults_are_the_shipped_demo_recipe():
                                                      record["data"]["frames"])
     assert args.pretrain_steps == record["pretrain_steps"]
     settings = cli.settings_record(args)
-    # the demo's card predates --queries: its count is the config's
-    assert settings.pop("queries") == card["config"]["num_queries"]
+    assert settings["queries"] == card["config"]["num_queries"]
     assert {k: record[k] for k in settings} == settings
     assert (settings["precision"], settings["attention"], settings["average"]) == (
         "float32", "cached", None)
