@@ -11,8 +11,7 @@ cd "$(dirname "$0")/../.."
 parq-synth data/val --scenes 40 --seed 2000 --frames 60 --width 160 --height 120 --jobs 2 --quiet
 parq-synth data/val2 --scenes 120 --seed 2001 --frames 60 --width 160 --height 120 --jobs 2 --quiet
 # generates its 1600 training scenes of 30 frames into data/train1600, then trains (the demo
-# configuration names point sampling as its resize filter, so the card it exports to does too;
-# the shipped card got it by parq_export.card_rewrite on 2026-12-06, the weights unchanged)
+# configuration names point sampling as its resize filter, so the card it exports to does too)
 # (--dropout 0.1 and --steps 19000, also the defaults, written out: the authors' training
 # dropout on the decoder layer's residual branches and FFN, and the steps that fill the 90
 # minutes; docs/demo-experiments.md, "The authors' training dropout" and "A longer schedule
