@@ -34,6 +34,7 @@ VIEWS = 3                   # views of a training snippet (data.load_scenes), th
 MAX_SEED = 2 ** 64 - 1      # torch.manual_seed takes seeds below 2**64
 MAX_PROCESSES = 1024        # --jobs and --threads: more is a mistyped number (torch crashes)
 DEMO_QUERIES = 64           # the demo's learned queries (--queries)
+DEMO_IMAGE_SIZE = (160, 120)  # the demo's network input, width x height (--image-size)
 
 
 # Argument types: a bad value is refused by the parser, before anything is generated.
@@ -53,6 +54,19 @@ def checkpoint_file(text: str) -> pathlib.Path:
     return pathlib.Path(text)
 
 
+def image_size(text: str) -> tuple:
+    """--image-size WxH: the network input, both multiples of 4 (the stride-4 features must
+    tile it exactly) and at least 32, at most parq-synth's 4096."""
+    w, x, h = text.lower().partition("x")
+    if not (x and w.isdigit() and h.isdigit()):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected WIDTHxHEIGHT, e.g. 192x144")
+    w, h = int(w), int(h)
+    if w % 4 or h % 4 or not (32 <= w <= 4096 and 32 <= h <= 4096):
+        raise argparse.ArgumentTypeError(f"{text}: width and height must be multiples of 4 "
+                                         f"from 32 to 4096")
+    return w, h
+
+
 def given_path(text: str) -> pathlib.Path:
     """A path that is not empty (an empty one would be the current folder)."""
     if not text:
@@ -67,7 +81,7 @@ def demo_config(**overrides):
     from parq_export.config import PARQConfig
 
     base = dict(resnet_depth=18, resnet_width=16, fpn_channels=32, heads=4, ffn_dim=256,
-                num_queries=DEMO_QUERIES, ray_samples=32, image_size=(160, 120), iterations=4,
+                num_queries=DEMO_QUERIES, ray_samples=32, image_size=DEMO_IMAGE_SIZE, iterations=4,
                 image_filter="point")
     base.update(overrides)
     return PARQConfig(**base)
@@ -111,6 +125,10 @@ def parser() -> argparse.ArgumentParser:
                    help="learned queries, the model's reference points (default 64, the "
                         "demo's; 128 cost 1.5 times a step and, trained for 12,500 steps, "
                         "scored 0.03 lower held out: see docs/demo-experiments.md)")
+    p.add_argument("--image-size", type=image_size, default=DEMO_IMAGE_SIZE, metavar="WxH",
+                   help="network input, width x height (default 160x120, the demo's); the "
+                        "training scenes are rendered at this size, so each size needs its "
+                        "own --data folder, and the pretraining runs at it")
     p.add_argument("--iterations", type=positive_int, default=4,
                    help="recurrent iterations supervised per step (default 4; 2 with 1.6x "
                         "the steps in the same minutes scored lower at 2 iterations, and its 4 "
@@ -274,7 +292,7 @@ def run(args, argv) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     config = demo_config(iterations=args.iterations, snippet_gap=args.gap,
-                         num_queries=args.queries)
+                         num_queries=args.queries, image_size=args.image_size)
     command = "parq-train " + " ".join(argv)
     recipe = recipe_of(args)
     state_path = resume.path_for(args.output)
@@ -405,7 +423,9 @@ def recipe_of(args) -> dict:
             **({"average": average_record(args)} if args.average_from else {}),
             **({"dropout": args.dropout} if args.dropout else {}),
             **({"attention_dropout": args.attention_dropout} if args.attention_dropout else {}),
-            **({"queries": args.queries} if args.queries != DEMO_QUERIES else {})}
+            **({"queries": args.queries} if args.queries != DEMO_QUERIES else {}),
+            **({"image_size": list(args.image_size)}
+               if tuple(args.image_size) != DEMO_IMAGE_SIZE else {})}
 
 
 def average_record(args) -> dict | None:

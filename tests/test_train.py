@@ -833,6 +833,9 @@ def test_parq_train_tries_the_output_folder_rather_than_trusting_its_permissions
     (["--average-every", "0"], "--average-every: 0 must be"),
     (["--dropout", "1"], "--dropout: 1.0 must be at least 0 and below 1"),
     (["--attention-dropout", "nan"], "--attention-dropout: nan must be at least 0 and below 1"),
+    (["--image-size", "190x144"], "--image-size: 190x144: width and height must be multiples of 4"),
+    (["--image-size", "192"], "--image-size: '192': expected WIDTHxHEIGHT"),
+    (["--image-size", "28x28"], "width and height must be multiples of 4 from 32 to 4096"),
 ])
 def test_parq_train_refuses_bad_numbers_before_any_work(flag, needle, tmp_path, capsys,
                                                         monkeypatch, no_work):
@@ -931,6 +934,7 @@ def test_parq_train_defaults_are_the_shipped_demo_recipe():
     assert args.pretrain_steps == record["pretrain_steps"]
     settings = cli.settings_record(args)
     assert settings["queries"] == card["config"]["num_queries"]
+    assert list(args.image_size) == [card["image"]["width"], card["image"]["height"]]
     assert {k: record[k] for k in settings} == settings
     assert (settings["precision"], settings["attention"], settings["average"]) == (
         "float32", "cached", None)
