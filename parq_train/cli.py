@@ -424,8 +424,9 @@ def recipe_of(args) -> dict:
             **({"dropout": args.dropout} if args.dropout else {}),
             **({"attention_dropout": args.attention_dropout} if args.attention_dropout else {}),
             **({"queries": args.queries} if args.queries != DEMO_QUERIES else {}),
-            **({"image_size": list(args.image_size)}
-               if tuple(args.image_size) != DEMO_IMAGE_SIZE else {})}
+            # always, so that a change of the default cannot resume a run at another size
+            # (states written before the flag, at 160x120, hold none: they no longer resume)
+            "image_size": list(args.image_size)}
 
 
 def average_record(args) -> dict | None:

@@ -735,6 +735,28 @@ def test_parq_train_queries_sets_the_learned_queries_and_the_card_records_them(t
     assert "queries" not in cli.recipe_of(cli.parser().parse_args([str(out)]))
 
 
+def test_parq_train_image_size_renders_trains_and_records_that_size(tmp_path, capsys):
+    """--image-size WxH renders the training scenes at that size, trains a network whose input
+    it is, and puts it in the recipe a --resume must repeat; scenes of another size are
+    refused, not resampled into the training set."""
+    from parq_export import checkpoint
+    from parq_train import cli
+
+    data = str(tmp_path / "train")
+    out = tmp_path / "s.pt"
+    assert cli.main([str(out), "--seed", "0", "--data", data, *TINY_RUN,
+                     "--image-size", "64x48"]) == 0
+    assert tuple(checkpoint.load(out).config.image_size) == (64, 48)
+    scene = json.loads(next((tmp_path / "train").glob("*/scene.json")).read_text())
+    assert (scene["width"], scene["height"]) == (64, 48)
+    assert cli.recipe_of(cli.parser().parse_args([str(out), "--image-size", "64x48"]))[
+        "image_size"] == [64, 48]
+    capsys.readouterr()
+    assert cli.main([str(tmp_path / "t.pt"), "--data", data, *TINY_RUN]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"width 64 (wanted {cli.DEMO_IMAGE_SIZE[0]})" in err
+
+
 # ------------------------------------------------------------ parq-train's argument checks
 
 TINY_RUN = ["--scenes", "1", "--frames", "8", "--jobs", "1", "--steps", "1", "--batch", "1",
