@@ -40,6 +40,17 @@ SCANNET_MEAN_SIZES = (
 RESNET_DEPTHS = (18, 34, 50, 101)
 
 
+
+# The network input: P2 (stride 4) must be exactly (w/4, h/4) for the camera scaling to hold.
+IMAGE_MULTIPLE, MIN_IMAGE_SIDE = 4, 32
+
+
+def image_size_fits(width: int, height: int) -> bool:
+    """Whether (width, height) can be a PARQ input: both multiples of IMAGE_MULTIPLE, at least
+    MIN_IMAGE_SIDE."""
+    return all(v % IMAGE_MULTIPLE == 0 and v >= MIN_IMAGE_SIDE for v in (width, height))
+
+
 @dataclass(frozen=True)
 class PARQConfig:
     """Architecture and pre/post-processing constants of one PARQ model.
@@ -112,10 +123,9 @@ class PARQConfig:
         if len(self.ray_scale) != 6 or len(self.decoder_scale) != 6:
             problems.append("ray_scale and decoder_scale need 6 values")
         w, h = self.image_size
-        if w % 4 or h % 4 or w < 32 or h < 32:
-            # P2 (stride 4) must be exactly (w/4, h/4) for the camera scaling to hold.
+        if not image_size_fits(w, h):
             problems.append(f"image_size {self.image_size}: width and height must be "
-                            "multiples of 4, at least 32")
+                            f"multiples of {IMAGE_MULTIPLE}, at least {MIN_IMAGE_SIDE}")
         problems += scene_fusion.problems(self.fusion, self.min_support, self.ray_ratio,
                                           self.scene_nms, tuple(self.floor_classes),
                                           self.floor_weight, self.classes, self.labels)

@@ -55,15 +55,18 @@ def checkpoint_file(text: str) -> pathlib.Path:
 
 
 def image_size(text: str) -> tuple:
-    """--image-size WxH: the network input, both multiples of 4 (the stride-4 features must
-    tile it exactly) and at least 32, at most parq-synth's 4096."""
+    """--image-size WxH: a network input PARQConfig accepts (parq_export.config.image_size_fits)
+    that parq-synth can render (at most parq_synth.scene.MAX_SIZE a side)."""
+    from parq_export.config import IMAGE_MULTIPLE, MIN_IMAGE_SIDE, image_size_fits
+    from parq_synth.scene import MAX_SIZE
+
     w, x, h = text.lower().partition("x")
     if not (x and w.isdigit() and h.isdigit()):
         raise argparse.ArgumentTypeError(f"{text!r}: expected WIDTHxHEIGHT, e.g. 192x144")
     w, h = int(w), int(h)
-    if w % 4 or h % 4 or not (32 <= w <= 4096 and 32 <= h <= 4096):
-        raise argparse.ArgumentTypeError(f"{text}: width and height must be multiples of 4 "
-                                         f"from 32 to 4096")
+    if not image_size_fits(w, h) or max(w, h) > MAX_SIZE:
+        raise argparse.ArgumentTypeError(f"{text}: width and height must be multiples of "
+                                         f"{IMAGE_MULTIPLE} from {MIN_IMAGE_SIDE} to {MAX_SIZE}")
     return w, h
 
 
