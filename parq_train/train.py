@@ -45,12 +45,14 @@ def swap_norms(module: nn.Module, to_trainable: bool) -> nn.Module:
     return module
 
 
-def set_dropout(model: nn.Module, rate: float, attention: float = 0.0) -> None:
+def set_dropout(model: nn.Module, rate: float, attention: float = 0.0,
+                key: float = 0.0) -> None:
     """The training dropout of the model's decoder layer(s): ``rate`` on the residual branches
-    and the FFN, ``attention`` on the attention weights (DecoderLayer)."""
+    and the FFN, ``attention`` on the attention weights, ``key`` DropKey on the
+    cross-attention's scores (DecoderLayer)."""
     for module in model.modules():
         if isinstance(module, DecoderLayer):
-            module.set_dropout(rate, attention)
+            module.set_dropout(rate, attention, key)
 
 
 def init_reference_points(model: PARQ, generator: torch.Generator, snippets=None) -> None:
@@ -114,6 +116,7 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
           denoise_scale: float = 0.0, denoise_class_weight: float = 1.0,
           mirror: bool = False, dense_weight: float = 0.0, average_from: int = 0,
           average_every: int = 2000, dropout: float = 0.0, attention_dropout: float = 0.0,
+          key_dropout: float = 0.0,
           state: dict | None = None, save_state=None) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
@@ -140,7 +143,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     ``dropout`` and ``attention_dropout`` above 0 train the decoder layer with the authors'
     dropout at those rates, on its residual branches and FFN and on its attention weights
     (:class:`parq_export.layer.DecoderLayer`; 0.1 both in their configuration); 0 trains
-    exactly as before.  Both are set back to 0 on the returned model.
+    exactly as before.  ``key_dropout`` above 0 adds DropKey on the cross-attention (beyond
+    the authors' recipe; see DecoderLayer).  All are set back to 0 on the returned model.
 
     ``save_state(state)``, if given, is called at the snapshots' steps with the whole state of
     the run (:func:`parq_train.resume.capture`); ``state`` is such a state to continue from,
@@ -151,7 +155,7 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     if model is None:
         model = new_model(config, seed, snippets)
     model.train()
-    set_dropout(model, dropout, attention_dropout)
+    set_dropout(model, dropout, attention_dropout, key_dropout)
     probe, captured, hook = None, {}, None
     if dense_weight > 0:
         probe = dense.DenseProbe(config.feature_dim, len(config.classes))

@@ -341,6 +341,39 @@ def test_bfloat16_autocast_training_learns_and_keeps_float32_weights():
     assert not all(torch.equal(a[k], b[k]) for k in a)
 
 
+def test_key_dropout_masks_the_same_scores_in_every_form_at_its_rate():
+    """parq-train --key-dropout (DropKey): the mask drops each score with the rate asked, and
+    every attention form reads it the same way (True: not read), so under one seed the cached,
+    fused (the kernel's mask, inverted), folded and reference (nn.MultiheadAttention's mask)
+    forms give the same outputs, and those differ from the forms without it."""
+    from parq_export.layer import DecoderLayer
+
+    layer = DecoderLayer(32, 4, 64).train()
+    layer.set_dropout(0.0, 0.0, 0.1)
+    torch.manual_seed(0)
+    dropped = layer.dropped_keys((2, 4, 64, 3601), "cpu")
+    assert dropped.shape == (2, 4, 64, 3601) and dropped.dtype == torch.bool
+    assert abs(dropped.float().mean().item() - 0.1) < 0.002
+    assert layer.eval().dropped_keys((2, 4, 64, 3601), "cpu") is None
+
+    config = tiny_config(num_queries=16)
+    images, camera, T_local_camera = random_snippet_batch(config)
+    model = PARQ(config)
+    train.set_dropout(model, 0.0, 0.0, 0.5)
+    model.train()
+    outputs = {}
+    with torch.no_grad():
+        for form in ("cached", "fused", "folded", "reference"):
+            torch.manual_seed(7)
+            outputs[form] = model(images, camera, T_local_camera, iterations=2,
+                                  form=form)[-1]["center"]
+        train.set_dropout(model, 0.0)
+        plain = model(images, camera, T_local_camera, iterations=2)[-1]["center"]
+    for form in ("fused", "folded", "reference"):
+        torch.testing.assert_close(outputs[form], outputs["cached"], rtol=1e-4, atol=1e-5)
+    assert not torch.allclose(outputs["cached"], plain, rtol=1e-3, atol=1e-4)
+
+
 def random_snippet_batch(config):
     """A batch of one random 3-view snippet for PARQ.forward: images (1, 3, 3, H, W), camera
     and T_local_camera as torch tensors with their batch axis."""
@@ -360,7 +393,8 @@ def test_dropout_acts_in_training_only_and_leaves_the_weights_form_unchanged():
     model = PARQ(config)
     with torch.no_grad():
         plain = model(images, camera, T_local_camera, iterations=2)[-1]["center"]
-        for rates in ((0.3, 0.0), (0.0, 0.3)):     # residual branches and FFN; attention
+        # residual branches and FFN; attention weights; DropKey on the cross-attention
+        for rates in ((0.3, 0.0, 0.0), (0.0, 0.3, 0.0), (0.0, 0.0, 0.3)):
             train.set_dropout(model, *rates)
             for form in ("cached", "fused", "folded", "reference"):
                 model.train()
@@ -855,6 +889,7 @@ def test_parq_train_tries_the_output_folder_rather_than_trusting_its_permissions
     (["--average-every", "0"], "--average-every: 0 must be"),
     (["--dropout", "1"], "--dropout: 1.0 must be at least 0 and below 1"),
     (["--attention-dropout", "nan"], "--attention-dropout: nan must be at least 0 and below 1"),
+    (["--key-dropout", "1"], "--key-dropout: 1.0 must be at least 0 and below 1"),
     (["--image-size", "190x144"], "--image-size: 190x144: width and height must be multiples of 4"),
     (["--image-size", "192"], "--image-size: '192': expected WIDTHxHEIGHT"),
     (["--image-size", "28x28"], "width and height must be multiples of 4 from 32 to 4096"),
