@@ -40,7 +40,6 @@ SCANNET_MEAN_SIZES = (
 RESNET_DEPTHS = (18, 34, 50, 101)
 
 
-
 # The network input: P2 (stride 4) must be exactly (w/4, h/4) for the camera scaling to hold.
 IMAGE_MULTIPLE, MIN_IMAGE_SIDE = 4, 32
 
