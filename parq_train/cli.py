@@ -148,9 +148,11 @@ def parser() -> argparse.ArgumentParser:
                         "docs/demo-experiments.md)")
     p.add_argument("--fused-attention", action="store_true",
                    help="torch's fused attention kernel in training: the same arithmetic in "
-                        "another rounding order, 0.185 s a step at 2 threads against 0.205; "
+                        "another rounding order, 0.189 s a step at 2 threads against 0.215; "
                         "off by default so that the default command rebuilds the shipped demo "
-                        "bit for bit")
+                        "bit for bit (the demo's recipe with it, 20,000 steps, scored 0.032 "
+                        "lower F1@0.25 held out: rounding alone moves a run that much, see "
+                        "docs/demo-experiments.md)")
     p.add_argument("--bf16", action="store_true",
                    help="train (not pretrain) under bfloat16 autocast: on a Xeon with AMX a "
                         "step took 0.47 s at --batch 8 against 0.60 in float32 (0.26 against "
