@@ -418,21 +418,30 @@ def test_dropout_acts_in_training_only_and_leaves_the_weights_form_unchanged():
     assert not all(torch.equal(a[k], c[k]) for k in a)
 
 
+def outputs_and_gradients(model, batch, form: str, keys: tuple, seed: int | None = None):
+    """One forward and backward pass of ``model`` on ``batch`` (images, camera,
+    T_local_camera) in attention form ``form``, 2 iterations, of a loss that reaches every
+    output: (the outputs ``keys`` of every iteration, {parameter name: gradient}).  ``seed``
+    seeds torch first, so that dropout draws the same masks in every form."""
+    model.zero_grad()
+    if seed is not None:
+        torch.manual_seed(seed)
+    outputs = model(*batch, iterations=2, form=form)
+    total = sum(o["center"].sum() + o["logits"].square().sum() for o in outputs)
+    total.backward()
+    return ([o[k].detach() for o in outputs for k in keys],
+            {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None})
+
+
 def test_fused_attention_form_matches_cached_in_outputs_and_gradients():
     """Training uses torch's fused attention kernel (form "fused"); it must compute what the
     cached form (checked against the authors' arithmetic in test_golden) computes."""
     config = tiny_config(num_queries=16)
     images, camera, T_local_camera = random_snippet_batch(config)
     model = PARQ(config)
-    results = {}
-    for form in ("cached", "fused"):
-        model.zero_grad()
-        outputs = model(images, camera, T_local_camera, iterations=2, form=form)
-        total = sum(o["center"].sum() + o["logits"].square().sum() for o in outputs)
-        total.backward()
-        results[form] = ([o[k].detach() for o in outputs for k in ("center", "size", "logits")],
-                         {n: p.grad.clone() for n, p in model.named_parameters()
-                          if p.grad is not None})
+    results = {form: outputs_and_gradients(model, (images, camera, T_local_camera), form,
+                                           ("center", "size", "logits"))
+               for form in ("cached", "fused")}
     for a, b in zip(results["cached"][0], results["fused"][0]):
         torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-5)
     grads_cached, grads_fused = results["cached"][1], results["fused"][1]
@@ -454,16 +463,9 @@ def test_fused_attention_form_matches_cached_at_the_demos_size_with_dropout():
     torch.manual_seed(0)
     model = train.swap_norms(PARQ(config), to_trainable=True).train()
     train.set_dropout(model, 0.1)
-    results = {}
-    for form in ("cached", "fused"):
-        model.zero_grad()
-        torch.manual_seed(5)
-        outputs = model(images, camera, T_local_camera, iterations=2, form=form)
-        total = sum(o["center"].sum() + o["logits"].square().sum() for o in outputs)
-        total.backward()
-        results[form] = ([o[k].detach() for o in outputs for k in ("center", "logits")],
-                         {n: p.grad.clone() for n, p in model.named_parameters()
-                          if p.grad is not None})
+    results = {form: outputs_and_gradients(model, (images, camera, T_local_camera), form,
+                                           ("center", "logits"), seed=5)
+               for form in ("cached", "fused")}
     for a, b in zip(results["cached"][0], results["fused"][0]):
         torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-4)
     grads_cached, grads_fused = results["cached"][1], results["fused"][1]
