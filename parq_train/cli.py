@@ -201,6 +201,10 @@ def parser() -> argparse.ArgumentParser:
                         "s against 0.189 without it and 0.299 with --attention-dropout 0.1 "
                         "instead, the demo's 0.215). Default 0: none (0.1 scored 0.039 lower "
                         "F1@0.25 held out: docs/demo-experiments.md)")
+    p.add_argument("--center-weight", type=finite_non_negative_float, default=5.0, metavar="W",
+                   help="weight of the L1 center loss against size 5, rotation 5 and class 1 "
+                        "(the matching is unchanged). Default 5, the paper's and the shipped "
+                        "demo's")
     p.add_argument("--average-from", type=non_negative_int, default=0, metavar="STEP",
                    help="write the mean of the weights after STEP, STEP + --average-every, "
                         "... steps up to the last (which must be on that grid) instead of the "
@@ -380,7 +384,8 @@ def run(args, argv) -> int:
                                  average_from=args.average_from,
                                  average_every=args.average_every, dropout=args.dropout,
                                  attention_dropout=args.attention_dropout,
-                                 key_dropout=args.key_dropout, state=state,
+                                 key_dropout=args.key_dropout,
+                                 center_weight=args.center_weight, state=state,
                                  save_state=save_state)
     trained = time.perf_counter() - start - generated - pretrained
     if state is not None:
@@ -416,6 +421,7 @@ def settings_record(args) -> dict:
             "dropout": args.dropout, "attention_dropout": args.attention_dropout,
             # only when set: the shipped card's record, made before the flag, has none
             **({"key_dropout": args.key_dropout} if args.key_dropout else {}),
+            **({"center_weight": args.center_weight} if args.center_weight != 5.0 else {}),
             "precision": "bfloat16 autocast" if args.bf16 else "float32"}
 
 
@@ -441,6 +447,7 @@ def recipe_of(args) -> dict:
             **({"dropout": args.dropout} if args.dropout else {}),
             **({"attention_dropout": args.attention_dropout} if args.attention_dropout else {}),
             **({"key_dropout": args.key_dropout} if args.key_dropout else {}),
+            **({"center_weight": args.center_weight} if args.center_weight != 5.0 else {}),
             **({"queries": args.queries} if args.queries != DEMO_QUERIES else {}),
             # always, so that a change of the default cannot resume a run at another size
             # (states written before the flag, at 160x120, hold none: they no longer resume)

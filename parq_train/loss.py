@@ -93,8 +93,11 @@ def snippet_loss(out: dict, b: int, target: dict, folds_of_class: torch.Tensor,
 
 
 def total_loss(outputs: list, targets: list, folds_of_class: torch.Tensor,
-               num_classes: int) -> tuple:
-    """Weighted sum averaged over iterations and snippets; also returns the parts."""
+               num_classes: int, weights: dict | None = None) -> tuple:
+    """Weighted sum averaged over iterations and snippets; also returns the parts (unweighted).
+    ``weights`` replaces some of WEIGHTS (e.g. ``{"center": 10.0}``); the matching is the
+    same whatever the weights."""
+    weights = dict(WEIGHTS, **(weights or {}))
     parts = {k: 0.0 for k in WEIGHTS}
     n = 0
     for out in outputs:
@@ -104,5 +107,5 @@ def total_loss(outputs: list, targets: list, folds_of_class: torch.Tensor,
                 parts[k] = parts[k] + losses[k]
             n += 1
     parts = {k: v / n for k, v in parts.items()}
-    total = sum(WEIGHTS[k] * parts[k] for k in WEIGHTS)
+    total = sum(weights[k] * parts[k] for k in WEIGHTS)
     return total, {k: float(v.detach()) for k, v in parts.items()}

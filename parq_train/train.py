@@ -24,7 +24,7 @@ from parq_export.model import PARQ
 
 from . import dense, denoise, mirror as mirror_augment, resume
 from .average import WeightMean
-from .loss import total_loss
+from .loss import WEIGHTS, total_loss
 from .progress import minutes
 
 
@@ -116,7 +116,7 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
           denoise_scale: float = 0.0, denoise_class_weight: float = 1.0,
           mirror: bool = False, dense_weight: float = 0.0, average_from: int = 0,
           average_every: int = 2000, dropout: float = 0.0, attention_dropout: float = 0.0,
-          key_dropout: float = 0.0,
+          key_dropout: float = 0.0, center_weight: float = WEIGHTS["center"],
           state: dict | None = None, save_state=None) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
@@ -145,6 +145,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     (:class:`parq_export.layer.DecoderLayer`; 0.1 both in their configuration); 0 trains
     exactly as before.  ``key_dropout`` above 0 adds DropKey on the cross-attention (beyond
     the authors' recipe; see DecoderLayer).  All are set back to 0 on the returned model.
+    ``center_weight`` weights the L1 center loss (the paper's 5 by default; the matching does
+    not change with it).
 
     ``save_state(state)``, if given, is called at the snapshots' steps with the whole state of
     the run (:func:`parq_train.resume.capture`); ``state`` is such a state to continue from,
@@ -209,7 +211,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
                        for out in outputs]
         if extra is not None:
             outputs, noised = denoise.split(outputs, config.num_queries)
-        loss, parts = total_loss(outputs, targets, folds, len(config.classes))
+        loss, parts = total_loss(outputs, targets, folds, len(config.classes),
+                                 {"center": center_weight})
         if extra is not None:
             dn_loss, dn_parts = denoise.denoise_loss(noised, index, targets, folds,
                                                      denoise_class_weight)
