@@ -37,6 +37,24 @@ def test_rotation_loss_respects_symmetry():
     assert loss.rotation_loss(pred, target, torch.tensor([36])) < 1e-10
 
 
+def test_center_weight_scales_only_the_center_term_and_not_the_matching():
+    """--center-weight: the total moves by (10 - 5) x the center part; the parts, and so the
+    matching behind them, are the same as with the paper's weights."""
+    torch.manual_seed(0)
+    out = {"logits": torch.randn(1, 6, 10), "reference": torch.rand(1, 6, 3) * 2,
+           "center": torch.rand(1, 6, 3) * 2, "size": torch.rand(1, 6, 3) + 0.2,
+           "rotation": torch.eye(3).expand(1, 6, 3, 3).clone()}
+    target = {"labels": torch.tensor([0, 3]), "centers": torch.tensor([[0.5, 0.5, 1], [1.5, 1, 0.5]]),
+              "sizes": torch.tensor([[0.5, 0.8, 0.6], [1.0, 1.3, 0.3]]),
+              "rotations": torch.eye(3).expand(2, 3, 3).clone()}
+    folds = torch.ones(9, dtype=torch.long)
+    paper, paper_parts = loss.total_loss([out, out], [target], folds, 9)
+    heavy, heavy_parts = loss.total_loss([out, out], [target], folds, 9, {"center": 10.0})
+    assert heavy_parts == paper_parts and paper_parts["center"] > 0.1
+    assert float(heavy - paper) == pytest.approx(5.0 * paper_parts["center"], rel=1e-6)
+    assert loss.WEIGHTS["center"] == 5.0                 # the paper's, not changed in place
+
+
 def test_norm_swap_round_trip_keeps_the_function():
     model = PARQ(tiny_config())
     x = torch.rand(2, 3, 48, 64)
@@ -922,6 +940,7 @@ def test_parq_train_tries_the_output_folder_rather_than_trusting_its_permissions
     (["--dropout", "1"], "--dropout: 1.0 must be at least 0 and below 1"),
     (["--attention-dropout", "nan"], "--attention-dropout: nan must be at least 0 and below 1"),
     (["--key-dropout", "1"], "--key-dropout: 1.0 must be at least 0 and below 1"),
+    (["--center-weight", "-2"], "--center-weight: -2.0 must not be negative"),
     (["--image-size", "190x144"], "--image-size: 190x144: width and height must be multiples of 4"),
     (["--image-size", "192"], "--image-size: '192': expected WIDTHxHEIGHT"),
     (["--image-size", "28x28"], "width and height must be multiples of 4 from 32 to 4096"),
