@@ -35,6 +35,9 @@ MAX_SEED = 2 ** 64 - 1      # torch.manual_seed takes seeds below 2**64
 MAX_PROCESSES = 1024        # --jobs and --threads: more is a mistyped number (torch crashes)
 DEMO_QUERIES = 64           # the demo's learned queries (--queries)
 DEMO_IMAGE_SIZE = (160, 120)  # the demo's network input, width x height (--image-size)
+# the paper's L1 center weight, loss.WEIGHTS["center"] (--center-weight); a copy, so that
+# building the parser does not import torch (tests/test_train.py holds the two together)
+PAPER_CENTER_WEIGHT = 5.0
 
 
 # Argument types: a bad value is refused by the parser, before anything is generated.
@@ -201,7 +204,8 @@ def parser() -> argparse.ArgumentParser:
                         "s against 0.189 without it and 0.299 with --attention-dropout 0.1 "
                         "instead, the demo's 0.215). Default 0: none (0.1 scored 0.039 lower "
                         "F1@0.25 held out: docs/demo-experiments.md)")
-    p.add_argument("--center-weight", type=finite_non_negative_float, default=5.0, metavar="W",
+    p.add_argument("--center-weight", type=finite_non_negative_float,
+                   default=PAPER_CENTER_WEIGHT, metavar="W",
                    help="weight of the L1 center loss against size 5, rotation 5 and class 1 "
                         "(the matching is unchanged). Default 5, the paper's and the shipped "
                         "demo's (10, in 3,000-step probes with two seeds, lowered the "
@@ -423,7 +427,8 @@ def settings_record(args) -> dict:
             "dropout": args.dropout, "attention_dropout": args.attention_dropout,
             # only when set: the shipped card's record, made before the flag, has none
             **({"key_dropout": args.key_dropout} if args.key_dropout else {}),
-            **({"center_weight": args.center_weight} if args.center_weight != 5.0 else {}),
+            **({"center_weight": args.center_weight}
+               if args.center_weight != PAPER_CENTER_WEIGHT else {}),
             "precision": "bfloat16 autocast" if args.bf16 else "float32"}
 
 
@@ -449,7 +454,8 @@ def recipe_of(args) -> dict:
             **({"dropout": args.dropout} if args.dropout else {}),
             **({"attention_dropout": args.attention_dropout} if args.attention_dropout else {}),
             **({"key_dropout": args.key_dropout} if args.key_dropout else {}),
-            **({"center_weight": args.center_weight} if args.center_weight != 5.0 else {}),
+            **({"center_weight": args.center_weight}
+               if args.center_weight != PAPER_CENTER_WEIGHT else {}),
             **({"queries": args.queries} if args.queries != DEMO_QUERIES else {}),
             # always, so that a change of the default cannot resume a run at another size
             # (states written before the flag, at 160x120, hold none: they no longer resume)

@@ -53,6 +53,8 @@ def test_center_weight_scales_only_the_center_term_and_not_the_matching():
     assert heavy_parts == paper_parts and paper_parts["center"] > 0.1
     assert float(heavy - paper) == pytest.approx(5.0 * paper_parts["center"], rel=1e-6)
     assert loss.WEIGHTS["center"] == 5.0                 # the paper's, not changed in place
+    from parq_train.cli import PAPER_CENTER_WEIGHT      # the CLI's torch-free copy of it
+    assert PAPER_CENTER_WEIGHT == loss.WEIGHTS["center"]
 
 
 def test_norm_swap_round_trip_keeps_the_function():
