@@ -44,7 +44,8 @@ def test_center_weight_scales_only_the_center_term_and_not_the_matching():
     out = {"logits": torch.randn(1, 6, 10), "reference": torch.rand(1, 6, 3) * 2,
            "center": torch.rand(1, 6, 3) * 2, "size": torch.rand(1, 6, 3) + 0.2,
            "rotation": torch.eye(3).expand(1, 6, 3, 3).clone()}
-    target = {"labels": torch.tensor([0, 3]), "centers": torch.tensor([[0.5, 0.5, 1], [1.5, 1, 0.5]]),
+    target = {"labels": torch.tensor([0, 3]),
+              "centers": torch.tensor([[0.5, 0.5, 1], [1.5, 1, 0.5]]),
               "sizes": torch.tensor([[0.5, 0.8, 0.6], [1.0, 1.3, 0.3]]),
               "rotations": torch.eye(3).expand(2, 3, 3).clone()}
     folds = torch.ones(9, dtype=torch.long)
