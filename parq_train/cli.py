@@ -4,7 +4,7 @@
 
 generates the training scenes (parq-synth, seeds of the ``train`` range) into --data, the
 ones not there already (a folder made with other frame counts or sizes is refused), trains the
-demo configuration for --steps steps and writes a checkpoint in this package's format whose
+demo configuration for --steps steps (or as many as --minutes holds) and writes a checkpoint in this package's format whose
 config records how it was made (command, seed, data, duration); ``parq-export`` copies that
 record into the model card.
 """
@@ -22,6 +22,8 @@ import time
 from parq_runtime.arguments import (OneLineParser, at_most, finite, non_negative_float,
                                     non_negative_int, positive_float, positive_int, score)
 from parq_runtime.errors import ParqError
+
+from .budget import MIN_STEPS, PLAN_AT, planned_steps
 
 # Scene seeds: training scenes use parq-synth seed TRAIN_SEED, validation VALIDATION_SEED; the
 # benchmark's held-out scenes use HELD_OUT_SEED.  Each scene's own seed is (seed, index), so
@@ -122,6 +124,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=positive_int, default=19000,
                    help="PARQ training steps with the paper's objective (default 19000, the "
                         "demo's: 73 minutes on 2 AVX-512 EPYC cores)")
+    p.add_argument("--minutes", type=finite_positive_float, default=None, metavar="M",
+                   help="end the whole command (generation and pretraining included) within M "
+                        f"minutes on this machine: after {PLAN_AT} training steps the run's "
+                        "length is set to the most steps the minutes left hold at that pace "
+                        f"plus 10%%, at most --steps, at least {MIN_STEPS}; the card records "
+                        "the steps, and --steps with them repeats the run. Default: --steps, "
+                        "however long it takes (the demo's 19000: 89 minutes on the AVX-512 "
+                        "EPYC, about 140 on a 2-core AMX Xeon)")
     p.add_argument("--batch", type=positive_int, default=4, help="snippets per step (default 4)")
     p.add_argument("--gap", type=positive_int, default=1,
                    help="keyframes between a training snippet's views (default 1: consecutive, "
@@ -261,6 +271,17 @@ def check_arguments(args) -> None:
         raise ParqError(f"--frames {args.frames}: a scene needs at least {span} frames for a "
                         f"snippet of {VIEWS} views {args.gap} keyframe(s) apart "
                         f"(--gap {args.gap})")
+    if args.minutes is not None:
+        for flag, given in (("--resume", args.resume), ("--average-from", args.average_from)):
+            if given:
+                raise ParqError(f"--minutes: not with {flag} (a planned run's length is known "
+                                f"only after its first steps; resume it with --steps and the "
+                                f"steps its log planned)" if flag == "--resume" else
+                                f"--minutes: not with {flag}, whose steps must lie on a grid "
+                                f"ending at the last step")
+        if args.steps < MIN_STEPS:
+            raise ParqError(f"--minutes: --steps {args.steps} is below the {MIN_STEPS} a "
+                            f"planned run needs (its warm-up must not depend on its length)")
     if args.average_from and (args.average_from > args.steps
                               or (args.steps - args.average_from) % args.average_every):
         raise ParqError(f"--average-from {args.average_from}: the last step (--steps "
@@ -304,6 +325,7 @@ def snapshot_path(output: pathlib.Path, step: int) -> pathlib.Path:
 
 
 def run(args, argv) -> int:
+    began = time.perf_counter()     # --minutes counts from here
     check_arguments(args)
 
     import torch
@@ -372,6 +394,26 @@ def run(args, argv) -> int:
     def save_state(run_state):
         resume.save(state_path, run_state, recipe, earlier)
 
+    budget_record = {}
+
+    def plan(done, seconds):
+        """--minutes: the run's length, from the pace of its first steps (budget.py)."""
+        try:
+            steps = planned_steps(args.minutes * 60, time.perf_counter() - began, done,
+                                  seconds, args.steps)
+        except ParqError as e:
+            if args.pretrain_steps and args.pretrained is None:
+                raise ParqError(f"{e} (the pretrained backbone is in "
+                                f"{pretrained_path(args.output)}: --pretrained with it skips "
+                                f"the pretraining)") from None
+            raise
+        log(f"--minutes {args.minutes:g}: {seconds / done:.3f} s a step over the first "
+            f"{done}, so {steps} steps of at most {args.steps} (repeat with --steps {steps})")
+        budget_record.update(minutes=args.minutes, most_steps=args.steps,
+                             seconds_per_step=round(seconds / done, 4), planned_after=done)
+        args.steps = recipe["steps"] = steps    # what the card and a saved state record
+        return steps
+
     def snapshot(model_now, step):
         path = snapshot_path(args.output, step)
         checkpoint.save(path, model_now, {"step": step})
@@ -392,7 +434,9 @@ def run(args, argv) -> int:
                                  attention_dropout=args.attention_dropout,
                                  key_dropout=args.key_dropout,
                                  center_weight=args.center_weight, state=state,
-                                 save_state=save_state)
+                                 save_state=save_state,
+                                 plan=plan if args.minutes is not None else None,
+                                 plan_at=PLAN_AT)
     trained = time.perf_counter() - start - generated - pretrained
     if state is not None:
         trained += state["seconds"]
@@ -401,7 +445,8 @@ def run(args, argv) -> int:
                        "frames": args.frames, "folder": str(args.data),
                        "snippets": len(snippets)},
               "pretrain_steps": pre_record["steps"], "pretraining": pre_record,
-              **settings_record(args), "threads": torch.get_num_threads(),
+              **settings_record(args), **({"budget": budget_record} if budget_record else {}),
+              "threads": torch.get_num_threads(),
               "minutes": dict(earlier["minutes"], train=round(trained / 60, 1)),
               "finished": now(),
               "torch": str(torch.__version__), "cpu_count": os.cpu_count(),

@@ -6,7 +6,8 @@ FrozenBatchNorm2d the exported architecture uses (same four tensors, same eps).
 
 The schedule is a fixed number of steps (AdamW, linear warm-up then cosine decay, gradient
 clipping at 1.0 as the authors), so the same seed gives the same model whatever the machine's
-speed; the command records how long it took.
+speed; the command records how long it took.  ``parq-train --minutes`` sets that number from
+the machine's pace instead, once, inside the warm-up (:mod:`parq_train.budget`), and records it.
 """
 from __future__ import annotations
 
@@ -117,7 +118,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
           mirror: bool = False, dense_weight: float = 0.0, average_from: int = 0,
           average_every: int = 2000, dropout: float = 0.0, attention_dropout: float = 0.0,
           key_dropout: float = 0.0, center_weight: float = WEIGHTS["center"],
-          state: dict | None = None, save_state=None) -> tuple:
+          state: dict | None = None, save_state=None, plan=None,
+          plan_at: int = 0) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
 
@@ -151,7 +153,13 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
     ``save_state(state)``, if given, is called at the snapshots' steps with the whole state of
     the run (:func:`parq_train.resume.capture`); ``state`` is such a state to continue from,
     in place of the first ``state["step"]`` steps (same arguments otherwise): the weights then
-    come out as without the interruption, bit for bit."""
+    come out as without the interruption, bit for bit.
+
+    ``plan(done, seconds)``, if given, is called once after ``plan_at`` steps (``seconds`` of
+    training) and returns the run's length from then on, at most ``steps``
+    (:mod:`parq_train.budget`).  The warm-up's length is set from ``steps`` before the first
+    step, so a run planned inside its warm-up to N steps takes the steps of a run of N steps
+    whenever both give the same warm-up (at least 5,000 steps: 500)."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     if model is None:
@@ -188,7 +196,9 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
         if weight_mean is not None:
             weight_mean.load_state_dict(state["average"])
     start = time.perf_counter() - seconds
-    for step in range(first, steps):
+    warmup = min(500, steps // 10)
+    step = first
+    while step < steps:
         if len(order) < batch_size:
             order += list(rng.permutation(len(snippets)))
         batch = [snippets[i] for i in order[:batch_size]]
@@ -196,8 +206,7 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
         if mirror:
             batch = mirror_augment.mirror_some(batch, rng, config.feature_stride)
         for group in optimizer.param_groups:
-            group["lr"] = group["scale"] * learning_rate(step, steps, lr,
-                                                         warmup=min(500, steps // 10))
+            group["lr"] = group["scale"] * learning_rate(step, steps, lr, warmup)
         images, camera, T_local_camera, targets = to_batch(batch, rng)
         extra = None
         if denoise_scale > 0:
@@ -252,6 +261,12 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
                                           average=weight_mean))
             if snapshot is not None:
                 snapshot(swap_norms(copy.deepcopy(model), to_trainable=False).eval(), step + 1)
+        step += 1
+        if plan is not None and step == plan_at and step < steps:
+            planned = plan(step, time.perf_counter() - start)
+            if not step <= planned <= steps:
+                raise ValueError(f"a plan of {planned} steps after {step} of {steps}")
+            steps = planned
     if hook is not None:
         hook.remove()
     if weight_mean is not None:
