@@ -244,7 +244,8 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
         for k, v in dict(parts, total=float(loss.detach())).items():
             running[k] = running.get(k, 0.0) + v
         if (step + 1) % log_every == 0 or step + 1 == steps:
-            mean = {k: v / log_every for k, v in running.items()}
+            window = step + 1 - (history[-1]["step"] if history else 0)  # the last: shorter
+            mean = {k: v / window for k, v in running.items()}
             elapsed = time.perf_counter() - start
             history.append({"step": step + 1, "seconds": round(elapsed, 1), **mean})
             log(f"step {step + 1}/{steps}  {minutes(elapsed, step + 1, steps)}  "

@@ -57,6 +57,21 @@ def test_a_run_planned_in_its_warm_up_takes_the_steps_of_a_run_of_that_length():
         train.train(config, snippets, steps=69, plan=lambda *_: 70, plan_at=3, **common)
 
 
+def test_a_last_logging_window_shorter_than_the_others_is_averaged_over_its_own_steps():
+    """A planned length is rarely a multiple of the logging interval: steps 21-25 of a run
+    logged every 10 steps average to what a run logged every 5 gives for the same steps (not
+    half of it, as when every window was divided by 10)."""
+    config = tiny_config(num_queries=16)
+    snippets = tiny_snippets(config)
+    common = dict(steps=25, seed=0, folds_of_class=[1] * 9, batch_size=2, iterations=2,
+                  lr=2e-3, log=lambda *_: None)
+    _, by_10 = train.train(config, snippets, log_every=10, **common)
+    _, by_5 = train.train(config, snippets, log_every=5, **common)
+    assert [h["step"] for h in by_10] == [10, 20, 25] and by_5[-1]["step"] == 25
+    assert by_10[-1]["total"] == pytest.approx(by_5[-1]["total"], rel=1e-12)
+    assert by_10[-1]["center"] == pytest.approx(by_5[-1]["center"], rel=1e-12)
+
+
 TINY = ["--scenes", "1", "--frames", "8", "--jobs", "1", "--batch", "1", "--iterations", "1",
         "--snapshot-every", "0", "--seed", "0"]
 
