@@ -2,7 +2,8 @@
 # Rebuilds the demo model from nothing, on 2 CPU cores (89 minutes on the AVX-512 EPYC that
 # made it: 6.9 generation, 9.3 pretraining, 72.8 training; a demo of 16,000 steps took 71 there,
 # 81 on Xeons and about 2.7 hours on an AVX2-only EPYC, so this one fits the 90 minutes only on
-# a CPU as fast as that EPYC), into
+# a CPU as fast as that EPYC; parq-train --minutes 90 holds a slower one to the 90 with fewer
+# steps and a weaker model: docs/demo-experiments.md, "held to 90 minutes"), into
 # work/parq-demo; compare it with models/parq-demo with benchmarks/tradeoff.py --model.
 # Needs: pip install -e ".[export,test]".  Seeds: training scenes 1000, validation 2000 and
 # 2001, held-out (reported numbers) 3000, sample scene 4000; training seed 0.
