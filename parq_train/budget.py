@@ -23,7 +23,8 @@ PLAN_AT = 250
 
 MIN_STEPS = 5000
 """The fewest steps a plan may give: 10 times the 500-step warm-up, the length from which the
-warm-up no longer depends on the number of steps (``train.learning_rate``)."""
+warm-up no longer depends on the number of steps (``min(500, steps // 10)`` in
+``train.train``)."""
 
 MARGIN = 1.10
 """Planned seconds a step over the first steps' pace.  Measured: the card's run took 0.230 s

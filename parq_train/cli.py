@@ -4,9 +4,9 @@
 
 generates the training scenes (parq-synth, seeds of the ``train`` range) into --data, the
 ones not there already (a folder made with other frame counts or sizes is refused), trains the
-demo configuration for --steps steps (or as many as --minutes holds) and writes a checkpoint in this package's format whose
-config records how it was made (command, seed, data, duration); ``parq-export`` copies that
-record into the model card.
+demo configuration for --steps steps (or as many as --minutes holds) and writes a checkpoint
+in this package's format whose config records how it was made (command, seed, data,
+duration); ``parq-export`` copies that record into the model card.
 """
 from __future__ import annotations
 
@@ -272,13 +272,13 @@ def check_arguments(args) -> None:
                         f"snippet of {VIEWS} views {args.gap} keyframe(s) apart "
                         f"(--gap {args.gap})")
     if args.minutes is not None:
-        for flag, given in (("--resume", args.resume), ("--average-from", args.average_from)):
-            if given:
-                raise ParqError(f"--minutes: not with {flag} (a planned run's length is known "
-                                f"only after its first steps; resume it with --steps and the "
-                                f"steps its log planned)" if flag == "--resume" else
-                                f"--minutes: not with {flag}, whose steps must lie on a grid "
-                                f"ending at the last step")
+        if args.resume:
+            raise ParqError("--minutes: not with --resume (a planned run's length is known "
+                            "only after its first steps; resume it with --steps and the steps "
+                            "its log planned)")
+        if args.average_from:
+            raise ParqError("--minutes: not with --average-from, whose steps must lie on a "
+                            "grid ending at the last step")
         if args.steps < MIN_STEPS:
             raise ParqError(f"--minutes: --steps {args.steps} is below the {MIN_STEPS} a "
                             f"planned run needs (its warm-up must not depend on its length)")

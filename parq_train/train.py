@@ -25,6 +25,7 @@ from parq_export.model import PARQ
 
 from . import dense, denoise, mirror as mirror_augment, resume
 from .average import WeightMean
+from .budget import PLAN_AT
 from .loss import WEIGHTS, total_loss
 from .progress import minutes
 
@@ -119,7 +120,7 @@ def train(config, snippets: list, steps: int, seed: int, folds_of_class, batch_s
           average_every: int = 2000, dropout: float = 0.0, attention_dropout: float = 0.0,
           key_dropout: float = 0.0, center_weight: float = WEIGHTS["center"],
           state: dict | None = None, save_state=None, plan=None,
-          plan_at: int = 0) -> tuple:
+          plan_at: int = PLAN_AT) -> tuple:
     """Train a PARQ (``model`` from :func:`new_model`, possibly with a pretrained backbone,
     or a fresh one) on the snippets; returns (model with frozen norms, history).
 
