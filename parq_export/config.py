@@ -90,6 +90,8 @@ class PARQConfig:
     floor_weight: float = scene_fusion.FLOOR_WEIGHT
     # which class a scene box reports: "best" (the authors') or "vote" (parq_runtime.fusion)
     labels: str = scene_fusion.AUTHORS_LABELS
+    # IoU at which a snippet's detection joins a scene box (parq_runtime.fusion; the authors' 0.1)
+    match_iou: float = scene_fusion.MATCH_IOU
     # learned queries, most useful first (parq_train.tune): a run with fewer queries starts
     # from the first ones; () = farthest-point sampling (parq_runtime.queries)
     query_order: tuple = ()
@@ -127,7 +129,8 @@ class PARQConfig:
                             f"multiples of {IMAGE_MULTIPLE}, at least {MIN_IMAGE_SIDE}")
         problems += scene_fusion.problems(self.fusion, self.min_support, self.ray_ratio,
                                           self.scene_nms, tuple(self.floor_classes),
-                                          self.floor_weight, self.classes, self.labels)
+                                          self.floor_weight, self.classes, self.labels,
+                                          self.match_iou)
         if self.query_order and sorted(self.query_order) != list(range(self.num_queries)):
             problems.append(f"query_order must be a permutation of the {self.num_queries} "
                             "learned queries")

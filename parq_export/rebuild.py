@@ -183,7 +183,7 @@ def card_config(card) -> PARQConfig:
         score_threshold=card.score_threshold, nms_iou=card.nms_iou,
         eval_region=card.eval_region, fusion=card.fusion, min_support=card.min_support,
         ray_ratio=card.ray_ratio, scene_nms=card.scene_nms, floor_classes=card.floor_classes,
-        floor_weight=card.floor_weight, labels=card.labels,
+        floor_weight=card.floor_weight, labels=card.labels, match_iou=card.match_iou,
         query_order=() if order is None else tuple(int(i) for i in order),
         snippet_gap=card.snippet_gap, image_filter=card.image_filter,
         run_iters=card.run_iters, run_queries=card.run_queries, run_mirror=card.run_mirror)

@@ -130,6 +130,14 @@ def floor_height(text: str):
     return value
 
 
+def match_iou(text: str) -> float:
+    """An IoU in (0, 1]: the fusion's matching floor (parq_runtime.fusion)."""
+    value = number(text)
+    if not 0.0 < value <= 1.0:
+        raise argparse.ArgumentTypeError(f"{value} must be above 0 and at most 1")
+    return value
+
+
 def ray_ratio(text: str) -> float:
     value = number(text)
     if not 1.0 <= value < float("inf"):

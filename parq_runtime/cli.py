@@ -7,8 +7,8 @@ import os
 import pathlib
 import sys
 
-from .arguments import (OneLineParser, floor_height, non_negative_float, positive_int, ray_ratio,
-                        scene_nms, score)
+from .arguments import (OneLineParser, floor_height, match_iou, non_negative_float, positive_int,
+                        ray_ratio, scene_nms, score)
 from .errors import ParqError
 from .files import os_error
 
@@ -79,6 +79,11 @@ def parser() -> argparse.ArgumentParser:
                    help="report one scene box per object: of two scene boxes of one class "
                         "overlapping by more than this IoU, only the better-scoring; 'off' "
                         "reports both, as the authors' protocol (default: the model card's)")
+    p.add_argument("--match-iou", type=match_iou, default=None, metavar="IOU",
+                   help="a snippet's detection joins the scene box it overlaps most when their "
+                        "3D IoU is at least this, in (0, 1]; lower joins more of one small "
+                        "object's detections into one box (default: the model card's; the "
+                        "authors' 0.1)")
     p.add_argument("--floor", type=floor_height, default=None, metavar="HEIGHT|off",
                    help="the floor's height along the world's up axis in metres, when known "
                         "(an AR session's floor plane, say); with ray fusion, boxes of the "
@@ -182,7 +187,7 @@ def run(args) -> int:
         keyframe_angle=args.keyframe_angle, keyframe_distance=args.keyframe_distance,
         max_snippets=args.max_snippets, fusion=args.fusion, min_support=args.min_support,
         ray_ratio=args.ray_ratio, scene_nms=args.scene_nms, mirror=args.mirror,
-        floor=args.floor, labels=args.labels)
+        floor=args.floor, labels=args.labels, match_iou=args.match_iou)
     settings = scene.resolved(settings, detector.card)      # the card's iters / queries
     detector.reference_points(settings.queries)  # argument check before the long part
     keys, snippets = scene.plan(capture, settings, detector.card)

@@ -1,8 +1,12 @@
 """Scene-level fusion of per-snippet detections.
 
 Snippets are added in order.  Each snippet's detections are matched to the scene's boxes so far
-by the Hungarian algorithm on 3D IoU (scipy's linear_sum_assignment); a pair under IoU 0.1
-counts as unmatched, and unmatched detections start new scene boxes.  Classes are not compared.
+by the Hungarian algorithm on 3D IoU (scipy's linear_sum_assignment); a pair under the
+matching IoU (``iou_threshold``, the model card's ``match_iou``; the authors' 0.1) counts as
+unmatched, and unmatched detections start new scene boxes.  Classes are not compared.  A lower
+floor lets two snippets' detections of one small object join although their depth errors
+leave them barely overlapping, which adds to the support they need to be reported
+(docs/demo-experiments.md, "The fusion's matching IoU").
 A scene box is the cluster of the detections matched to it, summarised by ``mode``:
 
 * ``best`` (the ODAM protocol the authors evaluate with): the detection with the highest score;
@@ -99,12 +103,16 @@ AUTHORS_LABELS = "best"
 
 
 def problems(mode, min_support, ray_ratio=RAY_RATIO, scene_nms=None, floor_classes=(),
-             floor_weight=FLOOR_WEIGHT, classes=None, labels=AUTHORS_LABELS) -> list:
+             floor_weight=FLOOR_WEIGHT, classes=None, labels=AUTHORS_LABELS,
+             match_iou=MATCH_IOU) -> list:
     """What is wrong with a fusion mode, minimum support, ray ratio, scene NMS IoU, floor
-    prior and label rule (empty when all are valid); ``classes``: the model's, which the floor
-    classes must be among (None: not checked).  SceneFusion, the model card and the exporter's
-    PARQConfig all check with it."""
+    prior, label rule and matching IoU (empty when all are valid); ``classes``: the model's,
+    which the floor classes must be among (None: not checked).  SceneFusion, the model card and
+    the exporter's PARQConfig all check with it."""
     found = []
+    if isinstance(match_iou, bool) or not isinstance(match_iou, (int, float)) \
+            or not 0.0 < match_iou <= 1.0:
+        found.append(f"fusion match_iou {match_iou!r} must be an IoU in (0, 1]")
     if labels not in LABEL_RULES:
         found.append(f"fusion labels {labels!r} must be one of {', '.join(LABEL_RULES)}")
     if not isinstance(floor_classes, (list, tuple)) or not all(
@@ -185,7 +193,8 @@ class SceneFusion:
 
     def __post_init__(self):
         found = problems(self.mode, self.min_support, self.ray_ratio, self.scene_nms,
-                         self.floor_classes, self.floor_weight, labels=self.labels)
+                         self.floor_classes, self.floor_weight, labels=self.labels,
+                         match_iou=self.iou_threshold)
         if found:
             raise ParqError("; ".join(found))
 

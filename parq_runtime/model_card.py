@@ -125,6 +125,12 @@ class ModelCard:
         return None if value is None else float(value)
 
     @property
+    def match_iou(self) -> float:
+        """IoU at which a snippet's detection joins a scene box (parq_runtime.fusion; cards
+        before it: the authors' 0.1)."""
+        return float(self.raw["postprocess"].get("match_iou", fusion.MATCH_IOU))
+
+    @property
     def floor_classes(self) -> tuple:
         """Classes whose boxes stand on the floor, pulled to it once it is found in the images
         (parq_runtime.fusion, parq_runtime.floor; empty, and cards before it: none)."""
@@ -382,7 +388,8 @@ def _checked(folder: pathlib.Path, path: pathlib.Path, raw: dict,
                             post.get("ray_ratio", fusion.RAY_RATIO), post.get("scene_nms"),
                             post.get("floor_classes", ()),
                             post.get("floor_weight", fusion.FLOOR_WEIGHT), card.classes,
-                            post.get("labels", fusion.AUTHORS_LABELS))
+                            post.get("labels", fusion.AUTHORS_LABELS),
+                            post.get("match_iou", fusion.MATCH_IOU))
     if found:
         raise ParqError(f"{path}: postprocess: {'; '.join(found)}")
     limits = _section(path, raw, "limits")

@@ -39,6 +39,8 @@ class RunSettings:
                                           # floor classes (parq_runtime.floor)
     labels: str | None = None             # which class a scene box reports (best, vote);
                                           # None: the model card's
+    match_iou: float | None = None        # IoU at which a detection joins a scene box;
+                                          # None: the model card's
 
 
 def scene_nms(settings: RunSettings, card) -> float | None:
@@ -123,7 +125,7 @@ def run(detector, capture: Capture, settings: RunSettings, progress=None) -> Sce
     keys, snippets = plan(capture, settings, detector.card)
     result = SceneResult(capture, [capture.frames[i].name for i in keys],
                          mirror=settings.mirror, fusion=SceneFusion(
-                             up=capture.up,
+                             settings.match_iou or detector.card.match_iou, up=capture.up,
                              mode=settings.fusion or detector.card.fusion,
                              min_support=min_support(settings, detector.card),
                              ray_ratio=settings.ray_ratio or detector.card.ray_ratio,

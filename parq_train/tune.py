@@ -41,7 +41,8 @@ floor is found as parq-run finds it, from its frames near the fused boxes' guess
 
 Then the label rule (parq_runtime.fusion ``labels``: a scene box reports its best detection's
 class, or the class its detections vote for) is chosen for all of that, the authors' rule
-winning ties.  Last, the score threshold and the minimum support are chosen again, jointly,
+winning ties, and then the fusion's matching IoU (MATCH_IOUS; the authors' 0.1 winning ties).
+Last, the score threshold and the minimum support are chosen again, jointly,
 with all of that in place (:func:`select_keep`): the grid fixed them before the rest changed
 which boxes are right.
 
@@ -78,7 +79,7 @@ from parq_runtime import evaluation, floor, geometry, readers, scene
 from parq_runtime.arguments import OneLineParser, fraction, positive_int
 from parq_runtime.errors import ParqError
 from parq_runtime.fusion import (AUTHORS_LABELS, AUTHORS_MIN_SUPPORT, AUTHORS_MODE,
-                                 FLOOR_WEIGHT, LABEL_RULES, RAY_RATIO, SceneFusion)
+                                 FLOOR_WEIGHT, LABEL_RULES, MATCH_IOU, RAY_RATIO, SceneFusion)
 from parq_runtime.iou import iou_matrix
 
 THRESHOLDS = tuple(np.round(np.arange(0.3, 0.951, 0.05), 2))
@@ -100,9 +101,10 @@ RANKING_SCORE, RANKING_IOU, FALSE_WEIGHT = 0.7, 0.25, 0.5  # how query_utility c
 AUTHORS = {"score_threshold": 0.8, "eval_region": list(REGIONS[0]), "fusion": FUSIONS[0][0],
            "min_support": FUSIONS[0][1], "scene_nms": None, "labels": AUTHORS_LABELS}
 CHOSEN = ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio", "scene_nms",
-          "floor_classes", "floor_weight", "labels")
+          "floor_classes", "floor_weight", "labels", "match_iou")
 SCENE_NMS = (None, 0.0, 0.05, 0.1, 0.2, 0.3)   # None: off, the authors' protocol
 FLOOR_WEIGHTS = (FLOOR_WEIGHT, 10.0)           # the first is the runtime's default
+MATCH_IOUS = (MATCH_IOU, 0.05, 0.02, 0.01)      # the first is the authors'
 STANDING_SHARE, STANDING_TOLERANCE = 0.9, 0.02  # a floor class: 90% of its boxes within 2 cm
 
 
@@ -199,7 +201,8 @@ def score_supports(records: list, threshold: float, region, classes, fusion: str
 
 def fuse_records(records: list, threshold: float, region, fusion: str,
                  ray_ratio: float = RAY_RATIO, mirror: bool = False,
-                 scene_nms: float | None = None, labels: str = AUTHORS_LABELS) -> list:
+                 scene_nms: float | None = None, labels: str = AUTHORS_LABELS,
+                 match_iou: float = MATCH_IOU) -> list:
     """Per scene of ``records`` (run_once's): (its SceneFusion, support 1, of the snippet boxes
     scoring above ``threshold`` whose local centers lie in ``region``, truth, up); with
     ``mirror`` each snippet's mirror-image run is fused as parq-run --mirror fuses it."""
@@ -209,8 +212,8 @@ def fuse_records(records: list, threshold: float, region, fusion: str,
 
     fused = []
     for snippets, truth, up in records:
-        scene_boxes = SceneFusion(up=up, mode=fusion, ray_ratio=ray_ratio, scene_nms=scene_nms,
-                                  labels=labels)
+        scene_boxes = SceneFusion(match_iou, up=up, mode=fusion, ray_ratio=ray_ratio,
+                                  scene_nms=scene_nms, labels=labels)
         for n, boxes in enumerate(snippets):
             if mirror:
                 scene_boxes.add(kept(boxes[0]), n)
@@ -283,11 +286,12 @@ def candidate(records: list, classes, threshold: float, region, fusion: str, min
 
 def row_of(threshold: float, region, fusion: str, min_support: int, ray_ratio: float,
            metrics: dict, scene_nms: float | None = None, floor_classes=(),
-           floor_weight: float = FLOOR_WEIGHT, labels: str = AUTHORS_LABELS) -> dict:
+           floor_weight: float = FLOOR_WEIGHT, labels: str = AUTHORS_LABELS,
+           match_iou: float = MATCH_IOU) -> dict:
     return {"score_threshold": threshold, "eval_region": list(region), "fusion": fusion,
             "min_support": min_support, "ray_ratio": ray_ratio, "scene_nms": scene_nms,
             "floor_classes": list(floor_classes), "floor_weight": floor_weight,
-            "labels": labels,
+            "labels": labels, "match_iou": match_iou,
             **{f"f1@{k}": round(metrics[k]["f1"], 4) for k in metrics}}
 
 
@@ -388,6 +392,30 @@ def select_labels(records: list, classes, best: dict, sweep, mirror: bool = Fals
     return best_of(rows, criterion), rows
 
 
+def select_match(records: list, classes, best: dict, sweep, mirror: bool = False,
+                 criterion: Criterion = SUM) -> tuple:
+    """(``best`` with the fusion's matching IoU chosen by ``criterion``, the rows tried):
+    ``best`` itself (the authors' 0.1, which wins ties), then each other IoU of MATCH_IOUS with
+    everything else ``best``'s.  A lower floor joins more of one object's detections into one
+    scene box, and so raises its support: :func:`select_keep`, after it, chooses the support
+    again with it (docs/demo-experiments.md, "The fusion's matching IoU")."""
+    rows = [best]
+    for match_iou in MATCH_IOUS:
+        if match_iou == best["match_iou"]:
+            continue
+        fused = fuse_records(records, best["score_threshold"], best["eval_region"],
+                             best["fusion"], best["ray_ratio"], mirror, best["scene_nms"],
+                             best["labels"], match_iou)
+        pairs = floor_pairs(fused, best["min_support"], best["floor_classes"],
+                            best["floor_weight"], sweep)
+        rows.append(row_of(best["score_threshold"], best["eval_region"], best["fusion"],
+                           best["min_support"], best["ray_ratio"],
+                           evaluation.evaluate(pairs, classes), best["scene_nms"],
+                           best["floor_classes"], best["floor_weight"], best["labels"],
+                           match_iou))
+    return best_of(rows, criterion), rows
+
+
 def select_keep(records: list, classes, best: dict, sweep, mirror: bool = False,
                 criterion: Criterion = SUM) -> tuple:
     """(``best`` with the score threshold and minimum support chosen again, jointly, by
@@ -401,14 +429,15 @@ def select_keep(records: list, classes, best: dict, sweep, mirror: bool = False,
     rows = []
     for threshold in THRESHOLDS:
         fused = fuse_records(records, threshold, best["eval_region"], best["fusion"],
-                             best["ray_ratio"], mirror, best["scene_nms"], best["labels"])
+                             best["ray_ratio"], mirror, best["scene_nms"], best["labels"],
+                             best["match_iou"])
         for support in supports:
             pairs = floor_pairs(fused, support, best["floor_classes"], best["floor_weight"],
                                 sweep)
             rows.append(row_of(float(threshold), best["eval_region"], best["fusion"], support,
                                best["ray_ratio"], evaluation.evaluate(pairs, classes),
                                best["scene_nms"], best["floor_classes"], best["floor_weight"],
-                               best["labels"]))
+                               best["labels"], best["match_iou"]))
     return best_of([best] + rows, criterion), rows
 
 
@@ -476,8 +505,9 @@ def record_of(args, folders, best, table, ranking) -> dict:
 def choose(records: list, classes, args, folders: list) -> tuple:
     """:func:`select` over the grid for the run setting of ``args`` (with or without mirror
     runs), then :func:`select_scene_nms` for its best, then :func:`select_floor` with the
-    floors of the scenes ``folders``, then :func:`select_labels`, then :func:`select_keep`;
-    the table ends with the NMS rows, then the floor's, the label rules' and the last pass's."""
+    floors of the scenes ``folders``, then :func:`select_labels`, then :func:`select_match`,
+    then :func:`select_keep`; the table ends with the NMS rows, then the floor's, the label
+    rules', the matching IoUs' and the last pass's."""
     criterion = criterion_of(args)
     best, table = select(records, classes, fusions=MIRROR_FUSIONS if args.mirror else FUSIONS,
                          mirror=args.mirror, jobs=args.jobs, criterion=criterion)
@@ -485,8 +515,9 @@ def choose(records: list, classes, args, folders: list) -> tuple:
     sweep = floor_sweep(folders)
     best, floor_rows = select_floor(records, classes, best, sweep, args.mirror, criterion)
     best, label_rows = select_labels(records, classes, best, sweep, args.mirror, criterion)
+    best, match_rows = select_match(records, classes, best, sweep, args.mirror, criterion)
     best, keep_rows = select_keep(records, classes, best, sweep, args.mirror, criterion)
-    return best, table + rows + floor_rows + label_rows + keep_rows
+    return best, table + rows + floor_rows + label_rows + match_rows + keep_rows
 
 
 def floor_sweep(folders: list):
@@ -587,7 +618,7 @@ def run_checkpoint(args, folders) -> int:
         score_threshold=best["score_threshold"], eval_region=tuple(best["eval_region"]),
         fusion=best["fusion"], min_support=best["min_support"], ray_ratio=best["ray_ratio"],
         scene_nms=best["scene_nms"], floor_classes=tuple(best["floor_classes"]),
-        floor_weight=best["floor_weight"], labels=best["labels"],
+        floor_weight=best["floor_weight"], labels=best["labels"], match_iou=best["match_iou"],
         run_iters=args.iters, run_queries=args.queries, run_mirror=args.mirror, extra=extra,
         query_order=tuple(order))
     metadata = {"tuning_table": table}

@@ -254,6 +254,28 @@ def test_scene_nms_keeps_one_box_per_object_and_class():
             SceneFusion(scene_nms=bad)
 
 
+def test_matching_iou_joins_barely_overlapping_detections_of_one_object():
+    """Two snippets' detections of one 1 m box, 0.85 m apart along its depth (IoU 0.15 / 1.85
+    = 0.08): under the authors' matching IoU of 0.1 they grow two scene boxes of support 1,
+    which a support of 2 drops; at 0.05 they are one box of support 2 between them."""
+    from parq_runtime.errors import ParqError
+
+    def fused(*match_iou):
+        fusion = SceneFusion(*match_iou, mode="mean")
+        fusion.add([box([0.0, 0, 0.5], score=0.9)], 0)
+        fusion.add([box([0.85, 0, 0.5], score=0.9)], 1)
+        return fusion
+
+    authors = fused()
+    assert authors.supports == [1, 1] and authors.boxes_with_support(2) == []
+    joined = fused(0.05)
+    assert joined.supports == [2]
+    assert np.allclose(joined.boxes_with_support(2)[0].center, [0.425, 0, 0.5])
+    for bad in (0.0, 1.5, True, "0.1", float("nan")):
+        with pytest.raises(ParqError, match="match_iou"):
+            SceneFusion(bad)
+
+
 def test_label_vote_takes_the_class_the_cluster_calls_it_most():
     """One object, detected by four snippets: three call it a table (0.7, 0.75, 0.8), one a
     chair (0.95).  ``best`` reports the chair; ``vote`` the table (scores 2.25 against 0.95),

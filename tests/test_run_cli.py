@@ -112,6 +112,17 @@ def test_parq_run_end_to_end(tiny_model, tmp_path, authors_names):
     assert code == 0
     nms = json.loads(stdout)
     assert nms["settings"]["scene_nms"] == 0.0
+    assert nms["settings"]["match_iou"] == 0.1                  # the card's: the authors'
+    # the matching IoU from the command line reaches the fusion (tests/test_evaluation.py
+    # checks what it does): at the card's IoU the snippets' boxes join (``mean`` above keeps
+    # boxes of support 2); at 1.0 only identical boxes would, so every scene box stands alone
+    code, stdout, _ = run_cli(folder, "--model", tiny_model, "--iters", 2, "--queries", 16,
+                              "--score-threshold", 0, "--all-regions", "--fusion", "mean",
+                              "--match-iou", 1.0, "-q")
+    assert code == 0
+    apart = json.loads(stdout)
+    assert apart["settings"]["match_iou"] == 1.0 and apart["scene"]["boxes"]
+    assert all(b["support"] == 1 for b in apart["scene"]["boxes"])
     boxes = [Box.from_json(b) for b in nms["scene"]["boxes"]]
     for name in {b.class_name for b in boxes}:
         same = [b for b in boxes if b.class_name == name]
@@ -246,6 +257,8 @@ def test_bad_arguments(tiny_model, scannet_folder, tmp_path):
                          (["--ray-ratio", "inf"], "--ray-ratio"),
                          (["--scene-nms", 1.5], "--scene-nms"),
                          (["--scene-nms", "none"], "--scene-nms"),
+                         (["--match-iou", 0], "--match-iou"),
+                         (["--match-iou", 1.5], "--match-iou"),
                          (["--floor", "low"], "--floor"), (["--floor", "nan"], "--floor"),
                          (["--floor", "1e308"], "--floor")):
         out = tmp_path / "x.json"
@@ -289,6 +302,9 @@ def test_bad_model_folders(tiny_model, scannet_folder, tmp_path):
     card["postprocess"].update(floor_classes=[], labels="majority")
     (old / "model.json").write_text(json.dumps(card))
     _one_line_error(*run_cli(scannet_folder, "--model", old), "model.json", "labels")
+    card["postprocess"].update(labels="best", match_iou=0)
+    (old / "model.json").write_text(json.dumps(card))
+    _one_line_error(*run_cli(scannet_folder, "--model", old), "model.json", "match_iou")
 
 
 def test_bad_captures(tiny_model, tmp_path):

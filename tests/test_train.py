@@ -274,6 +274,39 @@ def test_tune_chooses_the_label_vote_when_it_scores_and_the_authors_rule_on_ties
     assert rows[0]["f1@0.25"] == rows[1]["f1@0.25"] == 1.0 and chosen["labels"] == "best"
 
 
+def test_tune_lowers_the_matching_iou_when_it_joins_an_object_and_keeps_the_authors_on_ties():
+    """Two snippets see one chair 0.85 m apart in depth (IoU 0.08): at support 2 the authors'
+    matching IoU (0.1) keeps two boxes of support 1 and reports nothing, F1 0; 0.05 joins them
+    into one box on the chair, F1 1, and lower IoUs tie with it (the first wins).  With one
+    snippet every IoU scores alike and the authors' stays; the rest of ``best`` is kept."""
+    from parq_runtime.boxes import Box
+    from parq_runtime.geometry import box_corners
+    from parq_train import tune
+
+    def box(x, score):
+        c, s, R = np.array([x, 0.0, 1.0]), np.array([1.0, 1.0, 1.0]), np.eye(3)
+        return Box(c, s, R, 0.0, 0, "chair", score, box_corners(c, s, R)), c
+
+    def no_floor(n, guess):
+        raise AssertionError("no floor classes: no floor is looked for")
+
+    truth = [box(0.425, 1.0)[0]]
+    up = (0.0, 0.0, 1.0)
+    records = [([[box(0.0, 0.9)], [box(0.85, 0.9)]], truth, up)]
+    best = tune.candidate(records, ["chair"], 0.5, tune.REGIONS[-1], "mean", 2, 10.0)
+    assert (best["match_iou"], best["f1@0.25"]) == (0.1, 0.0)
+    chosen, rows = tune.select_match(records, ["chair"], best, no_floor)
+    assert [(r["match_iou"], r["f1@0.25"]) for r in rows] == [
+        (0.1, 0.0), (0.05, 1.0), (0.02, 1.0), (0.01, 1.0)]
+    assert chosen["match_iou"] == 0.05
+    assert {k: chosen[k] for k in tune.CHOSEN if k != "match_iou"} == {
+        k: best[k] for k in tune.CHOSEN if k != "match_iou"}
+    alone = [([[box(0.425, 0.9)]], truth, up)]
+    best = tune.candidate(alone, ["chair"], 0.5, tune.REGIONS[-1], "mean", 1, 10.0)
+    chosen, rows = tune.select_match(alone, ["chair"], best, no_floor)
+    assert all(r["f1@0.25"] == 1.0 for r in rows) and chosen["match_iou"] == 0.1
+
+
 def test_tune_with_mirror_runs_counts_both_runs_and_scores_alike_in_any_number_of_jobs():
     """Mirror records: each snippet is (plain, mirrored).  The chair is found by both runs of
     the one snippet, a false box by the plain run only; support 2 (runs) keeps the chair
