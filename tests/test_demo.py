@@ -27,7 +27,7 @@ def test_demo_folder_is_small_and_its_card_says_how_it_was_made():
     assert sum(training["minutes"].values()) <= 90
     tuning = card["extra"]["postprocess_tuning"]
     for key in ("score_threshold", "eval_region", "fusion", "min_support", "ray_ratio",
-                "scene_nms", "floor_classes", "floor_weight", "labels"):
+                "scene_nms", "floor_classes", "floor_weight", "labels", "match_iou"):
         assert tuning["chosen"][key] == card["postprocess"][key], key
     # the run setting parq-run uses by default is the one the post-processing was chosen for
     assert (tuning["iters"], tuning["queries"], tuning.get("mirror", False)) == (

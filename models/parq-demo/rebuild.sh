@@ -28,9 +28,9 @@ parq-export work/demo-ranked.pt -o work/parq-demo-ranked --force
 # is at least 0.35 (a floor set before the run: docs/demo-experiments.md, "Chosen for the
 # goal"): for the shipped weights no region, ray fusion, ratio 30, then scene NMS 0.05, then
 # the floor prior for chairs, tables, cabinets, trash bins, sofas and bathtubs at weight 10,
-# then labels by vote, then threshold 0.75 and support 4 runs chosen again together (13
-# minutes on a 2-core AVX-512 EPYC); the tuning of a model folder keeps its query ranking and
-# writes a new folder
+# then labels by vote, then the matching IoU 0.01, then threshold 0.75 and support 4 runs
+# chosen again together (13 minutes on a 2-core AVX-512 EPYC, 22 on the AMX Xeon); the tuning
+# of a model folder keeps its query ranking and writes a new folder
 rm -rf work/parq-demo
 python -m parq_train.tune work/parq-demo-ranked --data data/val data/val2 --queries 64 --mirror \
     --min-f1-50 0.35 -o work/parq-demo
