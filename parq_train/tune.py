@@ -376,20 +376,24 @@ def select_labels(records: list, classes, best: dict, sweep, mirror: bool = Fals
     """(``best`` with the label rule chosen by ``criterion``, the rows tried): ``best``
     itself, scored with the authors' rule (which wins ties; parq_runtime.fusion), then each
     other rule of LABEL_RULES with everything else ``best``'s, floor prior included."""
-    rows = [best]
-    for labels in LABEL_RULES:
-        if labels == best["labels"]:
-            continue
-        fused = fuse_records(records, best["score_threshold"], best["eval_region"],
-                             best["fusion"], best["ray_ratio"], mirror, best["scene_nms"],
-                             labels)
-        pairs = floor_pairs(fused, best["min_support"], best["floor_classes"],
-                            best["floor_weight"], sweep)
-        rows.append(row_of(best["score_threshold"], best["eval_region"], best["fusion"],
-                           best["min_support"], best["ray_ratio"],
-                           evaluation.evaluate(pairs, classes), best["scene_nms"],
-                           best["floor_classes"], best["floor_weight"], labels))
+    rows = [best] + [scored(records, classes, dict(best, labels=labels), sweep, mirror)
+                     for labels in LABEL_RULES if labels != best["labels"]]
     return best_of(rows, criterion), rows
+
+
+def scored(records: list, classes, settings: dict, sweep, mirror: bool = False) -> dict:
+    """The row of ``settings`` (a row's CHOSEN keys): the records fused, pulled to the floor
+    (``sweep``: as for :func:`select_floor`) and scored as parq-run would run them."""
+    fused = fuse_records(records, settings["score_threshold"], settings["eval_region"],
+                         settings["fusion"], settings["ray_ratio"], mirror,
+                         settings["scene_nms"], settings["labels"], settings["match_iou"])
+    pairs = floor_pairs(fused, settings["min_support"], settings["floor_classes"],
+                        settings["floor_weight"], sweep)
+    return row_of(settings["score_threshold"], settings["eval_region"], settings["fusion"],
+                  settings["min_support"], settings["ray_ratio"],
+                  evaluation.evaluate(pairs, classes), settings["scene_nms"],
+                  settings["floor_classes"], settings["floor_weight"], settings["labels"],
+                  settings["match_iou"])
 
 
 def select_match(records: list, classes, best: dict, sweep, mirror: bool = False,
@@ -399,20 +403,8 @@ def select_match(records: list, classes, best: dict, sweep, mirror: bool = False
     everything else ``best``'s.  A lower floor joins more of one object's detections into one
     scene box, and so raises its support: :func:`select_keep`, after it, chooses the support
     again with it (docs/demo-experiments.md, "The fusion's matching IoU")."""
-    rows = [best]
-    for match_iou in MATCH_IOUS:
-        if match_iou == best["match_iou"]:
-            continue
-        fused = fuse_records(records, best["score_threshold"], best["eval_region"],
-                             best["fusion"], best["ray_ratio"], mirror, best["scene_nms"],
-                             best["labels"], match_iou)
-        pairs = floor_pairs(fused, best["min_support"], best["floor_classes"],
-                            best["floor_weight"], sweep)
-        rows.append(row_of(best["score_threshold"], best["eval_region"], best["fusion"],
-                           best["min_support"], best["ray_ratio"],
-                           evaluation.evaluate(pairs, classes), best["scene_nms"],
-                           best["floor_classes"], best["floor_weight"], best["labels"],
-                           match_iou))
+    rows = [best] + [scored(records, classes, dict(best, match_iou=match_iou), sweep, mirror)
+                     for match_iou in MATCH_IOUS if match_iou != best["match_iou"]]
     return best_of(rows, criterion), rows
 
 
