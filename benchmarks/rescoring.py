@@ -67,8 +67,9 @@ def features(cluster, snippets: int, runs_per_snippet: int, classes: int) -> lis
     sizes = np.stack([b.size for b in same])
     centers_world = np.stack([b.center for b in same])
     viewpoints_world = np.stack([b.viewpoint for b in same])
-    seen_by = {snippet for snippet, _ in cluster.runs}
-    both = sum((s, False) in cluster.runs and (s, True) in cluster.runs for s in seen_by)
+    seen_by = {run[0] for run in cluster.runs}
+    both = sum((s, False, 0.0) in cluster.runs and (s, True, 0.0) in cluster.runs
+               for s in seen_by)
     single = len(same) == 1
     row = [np.log1p(cluster.support), np.log1p(len(members)), np.log1p(len(seen_by)),
            scores.max(), scores.mean(), np.log(scores.sum()), len(same) / len(members),

@@ -106,6 +106,10 @@ class PARQConfig:
     # and whether it adds each snippet's mirror-image run (parq-run --mirror); min_support then
     # counts runs, two a snippet
     run_mirror: bool = DEFAULT_RUN["mirror"]
+    # and at how many point-sampling grids (parq-run --phases; 2 only helps frames at least
+    # twice the network size), with the minimum support at two grids (None: twice min_support)
+    run_phases: int = DEFAULT_RUN["phases"]
+    phase_support: int | None = None
     extra: dict = field(default_factory=dict, compare=False)  # free-form provenance
 
     feature_stride = 4  # FPN level P2; every level is resized to it
@@ -145,6 +149,12 @@ class PARQConfig:
                 problems.append(f"{name} {value!r} must be an integer >= 1")
         if not isinstance(self.run_mirror, bool):
             problems.append(f"run_mirror {self.run_mirror!r} must be True or False")
+        if isinstance(self.run_phases, bool) or self.run_phases not in (1, 2):
+            problems.append(f"run_phases {self.run_phases!r} must be 1 or 2")
+        if self.phase_support is not None and (
+                isinstance(self.phase_support, bool) or not isinstance(self.phase_support, int)
+                or self.phase_support < 1):
+            problems.append(f"phase_support {self.phase_support!r} must be an integer >= 1")
         if not 0 < self.ray_depth[0] < self.ray_depth[1]:
             problems.append(f"ray_depth {self.ray_depth} must be 0 < near < far")
         if problems:

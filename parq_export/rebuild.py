@@ -186,7 +186,8 @@ def card_config(card) -> PARQConfig:
         floor_weight=card.floor_weight, labels=card.labels, match_iou=card.match_iou,
         query_order=() if order is None else tuple(int(i) for i in order),
         snippet_gap=card.snippet_gap, image_filter=card.image_filter,
-        run_iters=card.run_iters, run_queries=card.run_queries, run_mirror=card.run_mirror)
+        run_iters=card.run_iters, run_queries=card.run_queries, run_mirror=card.run_mirror,
+        run_phases=card.run_phases, phase_support=card.phase_support)
 
 
 def rebuild(folder, opset: int = DEFAULT_OPSET, log=print) -> PARQ:

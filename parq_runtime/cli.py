@@ -100,6 +100,12 @@ def parser() -> argparse.ArgumentParser:
                         "support then counts runs (default: the model card's run setting, on "
                         "for the demo, off for the authors' checkpoints; --no-mirror for half "
                         "the time)")
+    p.add_argument("--phases", type=int, choices=(1, 2), default=None,
+                   help="point-sampling grids each snippet is run at, for frames at least "
+                        "twice the network size each way with a card that point-samples: 2 "
+                        "adds a run on the pixels half a network pixel over (and its mirror "
+                        "run), twice the time; smaller frames have one grid (default: the "
+                        "model card's run setting, 2 for the demo)")
     p.add_argument("--form", choices=("auto", "cached", "folded"), default="auto",
                    help="cross-attention form: auto picks the cheaper exact one (default)")
     p.add_argument("--keyframe-angle", type=non_negative_float, default=15.0,
@@ -187,7 +193,7 @@ def run(args) -> int:
         keyframe_angle=args.keyframe_angle, keyframe_distance=args.keyframe_distance,
         max_snippets=args.max_snippets, fusion=args.fusion, min_support=args.min_support,
         ray_ratio=args.ray_ratio, scene_nms=args.scene_nms, mirror=args.mirror,
-        floor=args.floor, labels=args.labels, match_iou=args.match_iou)
+        phases=args.phases, floor=args.floor, labels=args.labels, match_iou=args.match_iou)
     settings = scene.resolved(settings, detector.card)      # the card's iters / queries
     detector.reference_points(settings.queries)  # argument check before the long part
     keys, snippets = scene.plan(capture, settings, detector.card)

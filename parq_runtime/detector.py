@@ -156,20 +156,22 @@ class Detector:
             raise ParqError(f"intrinsics must be 3x3 or ({N}, 3, 3), got {K.shape}")
         return T_world_camera, K
 
-    def _prepare_view(self, i, image, K):
+    def _prepare_view(self, i, image, K, phase: float = 0.0):
         try:
-            return preprocess.prepare(image, K, self.card.image_size, self.card.image_filter)
+            return preprocess.prepare(image, K, self.card.image_size, self.card.image_filter,
+                                      phase)
         except ParqError as e:
             raise ParqError(f"view {i}: {e}") from None
 
-    def _prepare_views(self, indices, images, K) -> dict:
+    def _prepare_views(self, indices, images, K, phase: float = 0.0) -> dict:
         """{i: preprocess.prepare(images[i], K[i])} for the listed views, resized in parallel
         when there is more than one; the first failing view (in ``indices`` order) raises."""
         if len(indices) < 2 or self._threads < 2:
-            return {i: self._prepare_view(i, images[i], K[i]) for i in indices}
+            return {i: self._prepare_view(i, images[i], K[i], phase) for i in indices}
         if self._pool is None:
             self._pool = ThreadPoolExecutor(self._threads, thread_name_prefix="parq-prepare")
-        futures = [self._pool.submit(self._prepare_view, i, images[i], K[i]) for i in indices]
+        futures = [self._pool.submit(self._prepare_view, i, images[i], K[i], phase)
+                   for i in indices]
         return {i: f.result() for i, f in zip(indices, futures)}
 
     def prepare(self, images, intrinsics, cam_to_world, up=geometry.UP_Z):
@@ -220,7 +222,7 @@ class Detector:
                queries: int | None = None,
                score_threshold: float | None = None, region: bool = True,
                form: str = "auto", up=geometry.UP_Z, frame_keys=None,
-               cache: "FeatureCache | None" = None) -> DetectionResult:
+               cache: "FeatureCache | None" = None, phase: float = 0.0) -> DetectionResult:
         """Detect objects in one snippet.
 
         images: N RGB uint8 arrays (H, W, 3), any size; intrinsics: 3x3 for all views or
@@ -235,7 +237,9 @@ class Detector:
         image encoder runs only for frames not in the cache (their ``images`` entry may be None
         when cached); every snippet still gets its own ray encoding.  The views are then
         encoded in the order [cached..., new...]; results do not depend on view order beyond
-        float rounding."""
+        float rounding.  The cache holds phase 0's features: ``phase`` (preprocess.PHASES, the
+        frames' point-sampling grid, for frames at least twice the network size) takes
+        neither."""
         iters, queries = self.card.run_setting(iters, queries)
         iters = _check_count(iters, "iters", 1, MAX_ITERATIONS)
         reference = self.reference_points(queries)
@@ -249,13 +253,15 @@ class Detector:
         images = list(images)
         T_world_camera, K = self._check_snippet(images, intrinsics, cam_to_world)
         keys = list(frame_keys) if frame_keys is not None else [None] * len(images)
+        if phase and (cache is not None or frame_keys is not None):
+            raise ParqError("the feature cache holds the first sampling grid's features only")
         if len(keys) != len(images):
             raise ParqError(f"{len(keys)} frame keys for {len(images)} images")
         hit = [cache is not None and k is not None and k in cache for k in keys]
         old = [i for i in range(len(images)) if hit[i]]
         new = [i for i in range(len(images)) if not hit[i]]
         order = old + new
-        prepared = self._prepare_views(new, images, K)
+        prepared = self._prepare_views(new, images, K, phase)
         K_net = np.stack([cache.get(keys[i])[1] if hit[i] else prepared[i][1] for i in order])
         camera = geometry.scale_camera(geometry.pinhole(K_net), 1.0 / self.card.feature_stride)
         T_world_local = geometry.snippet_frame(T_world_camera, up)

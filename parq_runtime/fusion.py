@@ -148,7 +148,7 @@ def problems(mode, min_support, ray_ratio=RAY_RATIO, scene_nms=None, floor_class
 @dataclass
 class _Cluster:
     members: list        # Box, in the order added
-    runs: list           # (snippet index, mirrored) of each member
+    runs: list           # (snippet index, mirrored, sampling phase) of each member
     fused: object = None
 
     @property
@@ -172,7 +172,8 @@ class _Cluster:
     @property
     def support(self) -> int:
         """Distinct runs among the members: snippets, each counted twice when it was also run
-        mirrored (parq_runtime.mirror) and both runs detected the object."""
+        mirrored (parq_runtime.mirror) and both runs detected the object, and again for each
+        other sampling phase it was run at (parq_runtime.preprocess.PHASES)."""
         return len(set(self.runs))
 
 
@@ -202,9 +203,11 @@ class SceneFusion:
         if found:
             raise ParqError("; ".join(found))
 
-    def add(self, detections: list, snippet: int = -1, mirrored: bool = False) -> list:
+    def add(self, detections: list, snippet: int = -1, mirrored: bool = False,
+            phase: float = 0.0) -> list:
         """Fuse one snippet's detections (``mirrored``: from its mirror-image run, reflected
-        back); returns the cluster index each detection went to."""
+        back; ``phase``: the frames' point-sampling grid of the run); returns the cluster
+        index each detection went to."""
         if not detections:
             return []
         assigned = self._match(detections)
@@ -214,7 +217,7 @@ class SceneFusion:
                 self.clusters.append(_Cluster([], []))
             cluster = self.clusters[assigned[d]]
             cluster.members.append(det)
-            cluster.runs.append((snippet, bool(mirrored)))
+            cluster.runs.append((snippet, bool(mirrored), float(phase)))
             cluster.fused = self._summarise(cluster)
         return assigned
 

@@ -22,7 +22,8 @@ CARD_VERSION = 2  # 2: graphs pass the memory in factored form
 METADATA_KEY = "parq.model_card"
 # parq-run's iterations, queries and mirror runs for a card without a "run" entry (written
 # before it existed) or without one of its keys
-DEFAULT_RUN = {"iters": 2, "queries": 32, "mirror": False}
+DEFAULT_RUN = {"iters": 2, "queries": 32, "mirror": False, "phases": 1}
+PHASE_COUNTS = (1, 2)   # point-sampling grids a run may use (parq_runtime.preprocess.PHASES)
 MAX_ITERATIONS = 1000   # recurrent iterations a run may ask for (the detector checks it)
 REQUIRED = ("classes", "mean_sizes", "image", "feature", "decoder", "reference_points",
             "postprocess", "graphs", "limits", "config")
@@ -173,8 +174,24 @@ class ModelCard:
 
     @property
     def runs_per_snippet(self) -> int:
-        """Runs a snippet gets at the card's run setting: 2 with mirror runs, else 1."""
+        """Runs a snippet gets at the card's run setting on frames of the network's own size:
+        2 with mirror runs, else 1."""
         return 2 if self.run_mirror else 1
+
+    @property
+    def run_phases(self) -> int:
+        """Point-sampling grids parq-run runs each snippet at when not told (``--phases``):
+        1, or 2 to add the grid half a network pixel over where the frames are at least twice
+        the network size each way (parq_runtime.preprocess.grids); cards without it: 1."""
+        return int(self.raw.get("run", {}).get("phases", DEFAULT_RUN["phases"]))
+
+    @property
+    def phase_support(self) -> int | None:
+        """The minimum support of snippets run at both sampling grids, counted in runs at the
+        card's mirror setting (``min_support`` counts them at one grid); None: twice
+        ``min_support`` (parq_runtime.scene.min_support)."""
+        value = self.raw["postprocess"].get("phase_support")
+        return None if value is None else int(value)
 
     def run_setting(self, iters=None, queries=None) -> tuple:
         """(iterations, queries): those given, the card's run setting for each left None."""
@@ -415,6 +432,15 @@ def _checked(folder: pathlib.Path, path: pathlib.Path, raw: dict,
     if not isinstance(value, bool):
         raise ParqError(f"{path}: run.mirror must be true or false (whether the default run "
                         f"adds mirror-image runs), got {value!r}")
+    value = run.get("phases", DEFAULT_RUN["phases"])
+    if value not in PHASE_COUNTS or isinstance(value, bool):
+        raise ParqError(f"{path}: run.phases must be 1 or 2 (the point-sampling grids the "
+                        f"default run uses), got {value!r}")
+    value = raw["postprocess"].get("phase_support")
+    if value is not None and (isinstance(value, bool) or not isinstance(value, int)
+                              or value < 1):
+        raise ParqError(f"{path}: postprocess.phase_support must be an integer >= 1 (the "
+                        f"minimum support at two sampling grids), got {value!r}")
     for name, member in vars(ModelCard).items():   # every property reads: none fails later
         if isinstance(member, property):
             getattr(card, name)

@@ -34,15 +34,20 @@ SCANNET_SIZE = (1296, 968)
 SCANNET_PAD = 2  # rows added at the top and at the bottom
 AUTHORS_FILTER = "pillow-bilinear"
 FILTERS = (AUTHORS_FILTER, "point")  # how a frame is brought to the network size
+PHASES = (0.0, 0.5)  # point-sampling grids, in network pixels: parq-run's, and half a pixel over
 
 
 def prepare(image: np.ndarray, K: np.ndarray, size: tuple,
-            image_filter: str = AUTHORS_FILTER) -> tuple:
+            image_filter: str = AUTHORS_FILTER, phase: float = 0.0) -> tuple:
     """RGB uint8 (H, W, 3) and its 3x3 intrinsics -> (uint8 (h, w, 3) at ``size`` = (w, h),
-    scaled 3x3 intrinsics, float64); ``image_filter`` one of FILTERS (module doc)."""
+    scaled 3x3 intrinsics, float64); ``image_filter`` one of FILTERS (module doc); ``phase``
+    one of PHASES: which point-sampling grid (:func:`grids`; only the ``point`` filter has a
+    second, and only for frames at least twice the network size each way)."""
     if image_filter not in FILTERS:
         raise ParqError(f"unknown resize filter {image_filter!r} (one of "
                         f"{', '.join(FILTERS)})")
+    if phase not in PHASES:
+        raise ParqError(f"sampling phase {phase!r} must be one of {PHASES}")
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise ParqError(f"expected an RGB uint8 image (H, W, 3), got {image.dtype} "
@@ -59,18 +64,34 @@ def prepare(image: np.ndarray, K: np.ndarray, size: tuple,
         image = np.pad(image, ((SCANNET_PAD, SCANNET_PAD), (0, 0), (0, 0)))
         K[1, 2] += SCANNET_PAD
         h += 2 * SCANNET_PAD
+    if phase and grids((w, h), size, image_filter) < 2:
+        raise ParqError(f"a {w}x{h} frame has one sampling grid for a {size[0]}x{size[1]} "
+                        f"network with the {image_filter!r} filter, not a phase {phase} one")
     if (w, h) != tuple(size):
         if image_filter == "point":
-            image = image[point_samples(h, size[1])][:, point_samples(w, size[0])]
+            image = image[point_samples(h, size[1], phase)][:, point_samples(w, size[0], phase)]
         else:
             image = np.asarray(Image.fromarray(image).resize(tuple(size), Image.BILINEAR))
         K[0, :] /= w / size[0]
         K[1, :] /= h / size[1]
+        K[:2, 2] -= phase
     return np.ascontiguousarray(image), K
 
 
-def point_samples(n_in: int, n_out: int) -> np.ndarray:
+def point_samples(n_in: int, n_out: int, phase: float = 0.0) -> np.ndarray:
     """(n_out,) indices of the input pixels along one axis that a point-sampling resize from
-    ``n_in`` to ``n_out`` pixels takes: the nearest to u * n_in / n_out, where the intrinsics
-    scaled by n_out / n_in put output pixel u's ray."""
-    return np.minimum(np.rint(np.arange(n_out) * (n_in / n_out)).astype(np.int64), n_in - 1)
+    ``n_in`` to ``n_out`` pixels takes: the nearest to (u + phase) * n_in / n_out, where the
+    intrinsics scaled by n_out / n_in, their principal point less ``phase``, put output pixel
+    u's ray."""
+    return np.minimum(np.rint((np.arange(n_out) + phase) * (n_in / n_out)).astype(np.int64),
+                      n_in - 1)
+
+
+def grids(frame_size: tuple, size: tuple, image_filter: str) -> int:
+    """How many of PHASES give a ``frame_size`` = (W, H) frame distinct point-sampling grids at
+    the network ``size`` = (w, h): 2 with the ``point`` filter when W >= 2 w and H >= 2 h (a
+    320x240 frame for 160x120: pixels (2u, 2v) and (2u + 1, 2v + 1), no pixel shared), else 1
+    (a grid half a network pixel over would repeat the first one's pixels, and a filtered
+    frame has no grid)."""
+    (W, H), (w, h) = frame_size, size
+    return 2 if image_filter == "point" and W >= 2 * w and H >= 2 * h else 1

@@ -5,13 +5,15 @@
       "model":    {"folder", "checkpoint_sha256", "package_version"},
       "settings": {"iters", "queries", "views", "stride", "gap", "score_threshold", "region",
                    "fusion", "labels", "min_support", "ray_ratio", "scene_nms", "match_iou",
-                   "mirror", "form",
+                   "mirror", "phases", "form",
                    "keyframe_angle_deg", "keyframe_distance_m", "floor_classes"},
       "capture":  {"path", "format", "up", "frames", "keyframes", "notes", "floor": null or
                    {"height" m along up, "source": "given" | "images", "candidates": [m]}},
       "snippets": [{"index", "frames": [names], "T_world_local": 4x4, "form", "seconds",
                     "boxes": [box, ...], "mirrored_boxes": [box, ...] (only with mirror runs:
-                    the mirror-image run's boxes, reflected back)}],
+                    the mirror-image run's boxes, reflected back), "phase_boxes" and, with mirror
+                    runs, "phase_mirrored_boxes": [box, ...] (only at two sampling phases: the
+                    second point-sampling grid's runs)}],
       "scene":    {"boxes": [box + "snippet": index of the snippet it came from, "support":
                    how many snippets (runs, with mirror runs) detected it]},
       "seconds":  total
@@ -40,6 +42,10 @@ def to_json(scene, settings, card, score_threshold: float) -> dict:
                          "boxes": [b.to_json() for b in s.boxes]})
         if scene.mirror:
             snippets[-1]["mirrored_boxes"] = [b.to_json() for b in s.mirrored]
+        if scene.phases > 1:
+            snippets[-1]["phase_boxes"] = [b.to_json() for b in s.phased]
+            if scene.mirror:
+                snippets[-1]["phase_mirrored_boxes"] = [b.to_json() for b in s.phased_mirrored]
     fused = [dict(b.to_json(), snippet=int(src), support=int(n))
              for b, src, n in zip(scene.fusion.boxes, scene.fusion.sources,
                                   scene.fusion.supports)]
@@ -57,6 +63,7 @@ def to_json(scene, settings, card, score_threshold: float) -> dict:
                      "ray_ratio": scene.fusion.ray_ratio,
                      "scene_nms": scene.fusion.scene_nms,
                      "match_iou": scene.fusion.iou_threshold, "mirror": scene.mirror,
+                     "phases": scene.phases,
                      "form": settings.form, "keyframe_angle_deg": settings.keyframe_angle,
                      "keyframe_distance_m": settings.keyframe_distance,
                      "floor_classes": list(scene.fusion.floor_classes)},

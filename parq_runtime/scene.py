@@ -9,8 +9,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import floor, keyframes, mirror
+from . import floor, keyframes, mirror, preprocess
 from .detector import FeatureCache
+from .errors import ParqError
 from .fusion import FLOOR_OFF, SCENE_NMS_OFF, SceneFusion
 from .readers import Capture
 
@@ -34,6 +35,8 @@ class RunSettings:
     scene_nms: float | str | None = None  # None: the model card's; SCENE_NMS_OFF: none
     mirror: bool | None = None            # also run each snippet's mirror image; None: the
                                           # model card's run setting
+    phases: int | None = None             # point-sampling grids a snippet is run at (1 or 2,
+                                          # parq_runtime.preprocess.grids); None: the card's
     floor: float | str | None = None      # the floor's height along up (metres), FLOOR_OFF,
                                           # or None: found in the images when the card has
                                           # floor classes (parq_runtime.floor)
@@ -59,6 +62,8 @@ class SnippetResult:
     form: str
     seconds: float
     mirrored: list = field(default_factory=list)   # the mirror run's boxes, reflected back
+    phased: list = field(default_factory=list)     # the second sampling grid's run's boxes
+    phased_mirrored: list = field(default_factory=list)   # and its mirror run's, reflected
 
 
 @dataclass
@@ -70,6 +75,7 @@ class SceneResult:
     seconds: float = 0.0
     gap: int = 1          # keyframes between a snippet's views, as run
     mirror: bool = False  # whether each snippet was also run on its mirror image
+    phases: int = 1       # point-sampling grids each snippet was run at
     floor: dict | None = None   # {"height", "source": "given" | "images", "candidates"};
                                 # None: no floor prior (none asked for, or none found)
 
@@ -103,16 +109,31 @@ def uses_mirror(settings: RunSettings, card) -> bool:
     return card.run_mirror if settings.mirror is None else bool(settings.mirror)
 
 
-def min_support(settings: RunSettings, card) -> int:
+def min_support(settings: RunSettings, card, phases: int = 1) -> int:
     """The fusion's minimum support: the settings', else the card's scaled to the runs a
     snippet gets, since support counts runs (two a snippet with mirror runs) and the card's
     counts them at its own run setting.  A card chosen without mirror runs asks twice its
     support of a mirror run; one chosen with them (the demo: 3) half of it, rounded up (2),
-    of a run without."""
+    of a run without.  At two sampling grids (``phases``) the base is the card's
+    ``phase_support``, else twice its ``min_support``."""
     if settings.min_support is not None:
         return settings.min_support
     runs = 2 if uses_mirror(settings, card) else 1
-    return -(-card.min_support * runs // card.runs_per_snippet)
+    base = card.min_support if phases == 1 else (card.phase_support or 2 * card.min_support)
+    return -(-base * runs // card.runs_per_snippet)
+
+
+def sampling_phases(settings: RunSettings, card, capture: Capture) -> int:
+    """The point-sampling grids the capture's snippets are run at: the settings' (else the
+    card's) count, 1 where the first frame is not at least twice the network size each way
+    (preprocess.grids)."""
+    wanted = card.run_phases if settings.phases is None else settings.phases
+    if wanted not in (1, 2):
+        raise ParqError(f"sampling phases must be 1 or 2, got {wanted!r}")
+    if wanted == 1 or not capture.frames:
+        return 1
+    height, width = capture.frames[0].load_image().shape[:2]
+    return preprocess.grids((width, height), card.image_size, card.image_filter)
 
 
 def run(detector, capture: Capture, settings: RunSettings, progress=None) -> SceneResult:
@@ -122,12 +143,13 @@ def run(detector, capture: Capture, settings: RunSettings, progress=None) -> Sce
     runs' detections are fused (parq_runtime.mirror)."""
     start = time.perf_counter()
     settings = replace(settings, mirror=uses_mirror(settings, detector.card))
+    phases = sampling_phases(settings, detector.card, capture)
     keys, snippets = plan(capture, settings, detector.card)
     result = SceneResult(capture, [capture.frames[i].name for i in keys],
-                         mirror=settings.mirror, fusion=SceneFusion(
+                         mirror=settings.mirror, phases=phases, fusion=SceneFusion(
                              settings.match_iou or detector.card.match_iou, up=capture.up,
                              mode=settings.fusion or detector.card.fusion,
-                             min_support=min_support(settings, detector.card),
+                             min_support=min_support(settings, detector.card, phases),
                              ray_ratio=settings.ray_ratio or detector.card.ray_ratio,
                              scene_nms=scene_nms(settings, detector.card),
                              floor_classes=floor_classes(settings, detector.card),
@@ -162,9 +184,25 @@ def run(detector, capture: Capture, settings: RunSettings, progress=None) -> Sce
                                                           capture.up), **options)
             reflected = [mirror.unmirror_box(b, capture.up) for b in seen.boxes]
             result.fusion.add(reflected, n, mirrored=True)
+        phased, phased_mirrored = [], []
+        for phase in preprocess.PHASES[1:phases]:
+            if any(image is None for image in images):
+                images = [f.load_image() for f in frames]
+            if any(preprocess.grids(image.shape[1::-1], detector.card.image_size,
+                                    detector.card.image_filter) < 2 for image in images):
+                continue   # a frame smaller than the capture's first: one grid only
+            seen = detector.detect(images, K, T_world_camera, phase=phase, **options)
+            result.fusion.add(seen.boxes, n, phase=phase)
+            phased = seen.boxes
+            if settings.mirror:
+                seen = detector.detect(*mirror.mirror_snippet(images, K, T_world_camera,
+                                                              capture.up), phase=phase,
+                                       **options)
+                phased_mirrored = [mirror.unmirror_box(b, capture.up) for b in seen.boxes]
+                result.fusion.add(phased_mirrored, n, mirrored=True, phase=phase)
         result.snippets.append(SnippetResult(n, [f.name for f in frames], found.T_world_local,
                                              found.boxes, found.form, time.perf_counter() - t,
-                                             reflected))
+                                             reflected, phased, phased_mirrored))
         if progress is not None:
             progress(n + 1, len(snippets))
     result.floor = find_floor(result, settings)

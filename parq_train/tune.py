@@ -46,6 +46,13 @@ Last, the score threshold and the minimum support are chosen again, jointly,
 with all of that in place (:func:`select_keep`): the grid fixed them before the rest changed
 which boxes are right.
 
+With ``--phase-data`` (validation scenes rendered at least twice the network size each way,
+for the demo the same rooms at 320x240), last of all: whether parq-run adds each snippet's
+runs on the frames' second point-sampling grid (``run.phases``, parq_runtime.preprocess.grids)
+and at which support (``postprocess.phase_support``), against one grid at the chosen support
+(:func:`select_phases`; one grid wins ties).  At the network's own size a frame has one grid,
+so the rest of the card is chosen there.
+
 Before all of this, a checkpoint's learned queries are ranked (``query_order``, see
 parq_runtime.queries; a model folder keeps its own ranking): one pass with all of them, each
 query scored by the snippet detections it makes above score 0.7, +1 for each that overlaps a
@@ -75,7 +82,8 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from parq_runtime import evaluation, floor, geometry, readers, scene
+from parq_runtime import evaluation, floor, geometry, preprocess, readers, scene
+from parq_runtime.preprocess import PHASES
 from parq_runtime.arguments import OneLineParser, fraction, positive_int
 from parq_runtime.errors import ParqError
 from parq_runtime.fusion import (AUTHORS_LABELS, AUTHORS_MIN_SUPPORT, AUTHORS_MODE,
@@ -139,7 +147,7 @@ def run_once(detector, folders, iters: int, queries: int, stride: int | None = N
     between snippet starts (None: parq-run's default, no overlap); ``mirror``: each snippet is
     a pair (plain, mirrored) of such lists, the second from its mirror-image run."""
     settings = scene.RunSettings(iters=iters, queries=queries, score_threshold=0.0,
-                                 region=False, stride=stride, mirror=mirror)
+                                 region=False, stride=stride, mirror=mirror, phases=1)
     out = []
     for folder in folders:
         capture = readers.open_capture(folder)
@@ -152,6 +160,37 @@ def run_once(detector, folders, iters: int, queries: int, stride: int | None = N
                 return [(b, geometry.transform(T_local_world, b.center)) for b in boxes]
 
             snippets.append((local(s.boxes), local(s.mirrored)) if mirror else local(s.boxes))
+        truth, up = evaluation.load_ground_truth(folder / "boxes.json")
+        out.append((snippets, truth, up))
+    return out
+
+
+def run_looks(detector, folders, iters: int, queries: int, mirror: bool) -> list:
+    """Per scene: (snippets, truth, up), a snippet a list of its runs (looks) as (boxes as
+    [(box, its local center)], mirrored, phase), each snippet run at both point-sampling
+    grids (parq-run --phases 2; scenes whose frames have one grid get one) and, with
+    ``mirror``, each also mirrored."""
+    settings = scene.RunSettings(iters=iters, queries=queries, score_threshold=0.0,
+                                 region=False, mirror=mirror, phases=2)
+    out = []
+    for folder in folders:
+        capture = readers.open_capture(folder)
+        result = scene.run(detector, capture, settings)
+        snippets = []
+        for s in result.snippets:
+            T_local_world = geometry.invert(s.T_world_local)
+
+            def local(boxes):
+                return [(b, geometry.transform(T_local_world, b.center)) for b in boxes]
+
+            looks = [(local(s.boxes), False, 0.0)]
+            if mirror:
+                looks.append((local(s.mirrored), True, 0.0))
+            if result.phases > 1:
+                looks.append((local(s.phased), False, PHASES[1]))
+                if mirror:
+                    looks.append((local(s.phased_mirrored), True, PHASES[1]))
+            snippets.append(looks)
         truth, up = evaluation.load_ground_truth(folder / "boxes.json")
         out.append((snippets, truth, up))
     return out
@@ -389,11 +428,7 @@ def scored(records: list, classes, settings: dict, sweep, mirror: bool = False) 
                          settings["scene_nms"], settings["labels"], settings["match_iou"])
     pairs = floor_pairs(fused, settings["min_support"], settings["floor_classes"],
                         settings["floor_weight"], sweep)
-    return row_of(settings["score_threshold"], settings["eval_region"], settings["fusion"],
-                  settings["min_support"], settings["ray_ratio"],
-                  evaluation.evaluate(pairs, classes), settings["scene_nms"],
-                  settings["floor_classes"], settings["floor_weight"], settings["labels"],
-                  settings["match_iou"])
+    return scored_row(settings, settings["min_support"], evaluation.evaluate(pairs, classes))
 
 
 def select_match(records: list, classes, best: dict, sweep, mirror: bool = False,
@@ -433,6 +468,53 @@ def select_keep(records: list, classes, best: dict, sweep, mirror: bool = False,
     return best_of([best] + rows, criterion), rows
 
 
+def fuse_looks(records: list, settings: dict, phases: int) -> list:
+    """Per scene of ``records`` (run_looks'): (its SceneFusion, support 1, of the runs at the
+    first ``phases`` sampling grids, with ``settings``' threshold, region and fusion), truth,
+    up)."""
+    threshold, region = settings["score_threshold"], settings["eval_region"]
+    fused = []
+    for snippets, truth, up in records:
+        scene_boxes = SceneFusion(settings["match_iou"], up=up, mode=settings["fusion"],
+                                  ray_ratio=settings["ray_ratio"],
+                                  scene_nms=settings["scene_nms"], labels=settings["labels"])
+        for n, looks in enumerate(snippets):
+            for boxes, mirrored, phase in looks:
+                if phase in PHASES[:phases]:
+                    scene_boxes.add([b for b, c in boxes if b.score > threshold
+                                     and region[0] < c[0] < region[1]
+                                     and region[2] < c[2] < region[3]], n, mirrored, phase)
+        fused.append((scene_boxes, truth, up))
+    return fused
+
+
+def select_phases(records: list, classes, best: dict, sweep, mirror: bool = False,
+                  criterion: Criterion = SUM) -> tuple:
+    """((phases, phase_support), the rows tried) on ``records`` (run_looks' of scenes whose
+    frames are at least twice the network size; ``sweep`` their floors): ``best`` at one
+    sampling grid, its own support, against both grids at every support from 1 to twice
+    :func:`select_keep`'s largest (the support counts runs, twice as many); one grid wins ties
+    (docs/demo-experiments.md, "A second point-sampling phase")."""
+    def row(phases, fused, support):
+        pairs = floor_pairs(fused, support, best["floor_classes"], best["floor_weight"], sweep)
+        return dict(scored_row(best, support, evaluation.evaluate(pairs, classes)),
+                    phases=phases)
+
+    rows = [row(1, fuse_looks(records, best, 1), best["min_support"])]
+    both = fuse_looks(records, best, 2)
+    rows += [row(2, both, support) for support in range(1, 2 * (4 if mirror else 2) + 1)]
+    chosen = best_of(rows, criterion)
+    return ((2, chosen["min_support"]) if chosen["phases"] == 2 else (1, None)), rows
+
+
+def scored_row(settings: dict, min_support: int, metrics: dict) -> dict:
+    """row_of ``settings`` (a row's CHOSEN keys) at ``min_support`` with ``metrics``."""
+    return row_of(settings["score_threshold"], settings["eval_region"], settings["fusion"],
+                  min_support, settings["ray_ratio"], metrics, settings["scene_nms"],
+                  settings["floor_classes"], settings["floor_weight"], settings["labels"],
+                  settings["match_iou"])
+
+
 def best_of(table: list, criterion: Criterion = SUM) -> dict:
     """The best row of ``table`` by ``criterion``; max() keeps the first of equals, so in
     :func:`select`'s table the authors' fusion wins ties."""
@@ -460,6 +542,11 @@ def main(argv=None) -> int:
                    help="choose the post-processing for runs that add each snippet's mirror "
                         "image (parq-run --mirror; supports up to 4 runs); the card records "
                         "mirror runs as parq-run's default")
+    p.add_argument("--phase-data", type=pathlib.Path, nargs="+", default=None, metavar="DIR",
+                   help="also choose whether parq-run adds the second point-sampling grid "
+                        "(--phases 2) and its support, on these validation scenes rendered at "
+                        "least twice the network size each way (the --data scenes at 320x240 "
+                        "for the demo); model folders only (default: not chosen, one grid)")
     p.add_argument("--min-f1-50", type=fraction, default=None, metavar="F",
                    help="choose the candidate with the best F1@0.25 among those whose F1@0.5 "
                         "on the validation scenes is at least F (default: the best F1@0.25 + "
@@ -554,28 +641,56 @@ def run_folder(args, folders) -> int:
     detector = Detector(args.checkpoint)
     if args.output.exists():
         raise ParqError(f"{args.output}: already exists (a model folder is written new)")
+    phase_folders = validation_folders(args.phase_data, args.scenes) if args.phase_data else []
+    check_two_grids(phase_folders, detector.card)
     records = run_once(detector, folders, args.iters, args.queries, mirror=args.mirror)
     best, table = choose(records, detector.classes, args, folders)
+    phases, phase_support = 1, None
+    if phase_folders:
+        looks = run_looks(detector, phase_folders, args.iters, args.queries, args.mirror)
+        (phases, phase_support), phase_rows = select_phases(
+            looks, detector.classes, best, floor_sweep(phase_folders), args.mirror,
+            criterion_of(args))
+        table += phase_rows
     previous = detector.card.raw.get("extra", {}).get("postprocess_tuning") or {}
     ranking = previous.get("query_ranking")
     if ranking:
         ranking = dict(ranking, kept_from=str(args.checkpoint))
     record = dict(record_of(args, folders, best, table, ranking),
-                  tuned=f"model folder {args.checkpoint}")
+                  tuned=f"model folder {args.checkpoint}", phases=phases,
+                  phase_support=phase_support,
+                  phase_data=[str(d) for d in args.phase_data or ()])
 
     def update(card):
-        card["postprocess"].update({k: best[k] for k in CHOSEN})
-        card["run"] = {"iters": args.iters, "queries": args.queries, "mirror": args.mirror}
+        card["postprocess"].update({k: best[k] for k in CHOSEN}, phase_support=phase_support)
+        card["run"] = {"iters": args.iters, "queries": args.queries, "mirror": args.mirror,
+                       "phases": phases}
         card["extra"] = dict(card.get("extra", {}), postprocess_tuning=record)
     card_rewrite.rewrite(args.checkpoint, args.output, update)
     print(json.dumps(record, indent=1))
     return 0
 
 
+def check_two_grids(folders: list, card) -> None:
+    """ParqError unless every scene of ``folders`` has frames with two point-sampling grids
+    for ``card``'s network (preprocess.grids; its first frame stands for the scene)."""
+    for folder in folders:
+        height, width = readers.open_capture(folder).frames[0].load_image().shape[:2]
+        if preprocess.grids((width, height), card.image_size, card.image_filter) < 2:
+            w, h = card.image_size
+            raise ParqError(f"{folder}: its {width}x{height} frames have one point-sampling "
+                            f"grid for this {w}x{h} model ({card.image_filter!r} filter); "
+                            f"--phase-data needs frames at least twice its size each way")
+
+
 def run_checkpoint(args, folders) -> int:
     from parq_export import checkpoint
     from parq_export.export import export
     from parq_runtime import Detector
+
+    if getattr(args, "phase_data", None):
+        raise ParqError("--phase-data chooses for a model folder: export the checkpoint, then "
+                        "tune the folder")
 
     loaded = checkpoint.load(args.checkpoint)
     learned = loaded.config.num_queries

@@ -32,6 +32,8 @@ def test_demo_folder_is_small_and_its_card_says_how_it_was_made():
     # the run setting parq-run uses by default is the one the post-processing was chosen for
     assert (tuning["iters"], tuning["queries"], tuning.get("mirror", False)) == (
         card["run"]["iters"], card["run"]["queries"], card["run"].get("mirror", False))
+    assert (tuning.get("phases", 1), tuning.get("phase_support")) == (
+        card["run"].get("phases", 1), card["postprocess"].get("phase_support"))
     for role in ("backbone", "layer"):
         path = DEMO / card["graphs"][role]["file"]
         assert hashlib.sha256(path.read_bytes()).hexdigest() == card["graphs"][role]["sha256"]

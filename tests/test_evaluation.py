@@ -229,6 +229,18 @@ def test_min_support_counts_snippets_not_detections():
         SceneFusion(min_support=0)
 
 
+def test_support_counts_each_run_of_a_snippet_once_mirror_and_sampling_grid_apart():
+    """One snippet's four runs (plain and mirrored, at two point-sampling grids) that all see
+    a box give it support 4; a run that sees it twice still counts once."""
+    fusion = SceneFusion(min_support=4)
+    for mirrored in (False, True):
+        for phase in (0.0, 0.5):
+            assert fusion.boxes == []                      # support 1 to 3 of 4
+            fusion.add([box([0.01, 0, 0.5])], 0, mirrored, phase)
+    fusion.add([box([0.02, 0, 0.5])], 0, True, 0.5)
+    assert fusion.supports == [4] and fusion.sources == [0]
+
+
 def test_scene_nms_keeps_one_box_per_object_and_class():
     """Two clusters grown on one chair (a snippet's two detections each start one) are one
     object under scene NMS: the better-scoring stays, sources and supports follow it; a table

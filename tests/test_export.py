@@ -128,7 +128,7 @@ def test_run_setting_is_written_to_the_card_and_checked(tiny_model, tmp_path):
     before), detect() without them uses the card's, and a value that is not an integer in
     range (or for mirror, a boolean) is refused, as is a config."""
     card = json.loads((tiny_model / "model.json").read_text())
-    assert card["run"] == {"iters": 2, "queries": 32, "mirror": False}
+    assert card["run"] == {"iters": 2, "queries": 32, "mirror": False, "phases": 1}
     other = model_with_card(tiny_model, tmp_path / "other",
                             {k: v for k, v in card.items() if k != "run"})
     assert (Detector(other).card.run_iters, Detector(other).card.run_queries) == (2, 32)

@@ -63,3 +63,33 @@ def test_unknown_filter_is_refused():
     image = np.zeros((240, 320, 3), np.uint8)
     with pytest.raises(ParqError, match="unknown resize filter 'area'"):
         preprocess.prepare(image, K_LARGE, (160, 120), "area")
+
+
+def test_the_second_point_sampling_grid_is_the_pixels_half_a_network_pixel_over():
+    """Phase 0.5 of a 320x240 frame for 160x120 takes pixels (2u + 1, 2v + 1), none of phase
+    0's, and its intrinsics project a point seen at such a pixel onto the network pixel that
+    holds it."""
+    rng = np.random.default_rng(4)
+    image = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
+    first, _ = preprocess.prepare(image, K_LARGE, (160, 120), "point")
+    second, K = preprocess.prepare(image, K_LARGE, (160, 120), "point", phase=0.5)
+    np.testing.assert_array_equal(first, image[::2, ::2])
+    np.testing.assert_array_equal(second, image[1::2, 1::2])
+    for _ in range(20):
+        u, v = rng.integers(0, 160), rng.integers(0, 120)
+        point_camera = np.linalg.solve(K_LARGE, [2 * u + 1, 2 * v + 1, 1.0]) * rng.uniform(1, 5)
+        np.testing.assert_allclose((K @ point_camera)[:2] / point_camera[2], [u, v],
+                                   atol=1e-9)
+
+
+def test_a_frame_has_a_second_grid_only_at_twice_the_network_size_with_point_sampling():
+    assert preprocess.grids((320, 240), (160, 120), "point") == 2
+    assert preprocess.grids((1296, 968), (160, 120), "point") == 2
+    assert preprocess.grids((300, 240), (160, 120), "point") == 1
+    assert preprocess.grids((160, 120), (160, 120), "point") == 1
+    assert preprocess.grids((320, 240), (160, 120), preprocess.AUTHORS_FILTER) == 1
+    small = np.zeros((120, 160, 3), np.uint8)
+    with pytest.raises(ParqError, match="one sampling grid"):
+        preprocess.prepare(small, K_LARGE / [[2], [2], [1]], (160, 120), "point", phase=0.5)
+    with pytest.raises(ParqError, match="sampling phase 0.25"):
+        preprocess.prepare(small, K_LARGE, (160, 120), "point", phase=0.25)

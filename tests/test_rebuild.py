@@ -44,8 +44,8 @@ def test_rebuild_keeps_what_a_tuning_wrote_into_the_card(tiny_model, tmp_path):
     def update(card):
         card["postprocess"].update(score_threshold=0.6, fusion="ray", min_support=3,
                                    ray_ratio=30.0, scene_nms=0.1, floor_classes=["chair"],
-                                   floor_weight=10.0, labels="vote")
-        card["run"] = {"iters": 3, "queries": 8, "mirror": True}
+                                   floor_weight=10.0, labels="vote", phase_support=5)
+        card["run"] = {"iters": 3, "queries": 8, "mirror": True, "phases": 2}
 
     tuned = card_rewrite.rewrite(tiny_model, tmp_path / "tuned", update)
     model = rebuild.rebuild(tmp_path / "tuned", log=lambda *_: None)

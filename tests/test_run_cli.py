@@ -237,6 +237,55 @@ def test_parq_run_follows_the_cards_mirror_setting_and_scales_its_support(tiny_m
     assert settings(with_mirror, "--no-mirror", "--min-support", 3) == (False, 3)
 
 
+def test_parq_run_adds_the_second_sampling_grid_where_frames_have_one(tiny_model, tmp_path):
+    """--phases 2 (or a card's run.phases 2) runs each snippet again on the frames' second
+    point-sampling grid where they are at least twice the network size (its boxes in
+    phase_boxes, its mirror run's in phase_mirrored_boxes) and asks the card's phase_support
+    of the runs, scaled as mirror runs scale it; a smaller capture has one grid and keeps the
+    card's support; a card that does not point-sample has one grid at any size."""
+    card = json.loads((tiny_model / "model.json").read_text())
+    w, h = card["image"]["width"], card["image"]["height"]
+    large = write_scannet(tmp_path / "large", frames=6, size=(2 * w, 2 * h))
+    small = write_scannet(tmp_path / "small", frames=6, size=(w * 3 // 2, h * 3 // 2))
+    point = dict(card, image=dict(card["image"], filter="point"),
+                 run=dict(card["run"], mirror=True),
+                 postprocess=dict(card["postprocess"], min_support=2))
+    plain = model_with_card(tiny_model, tmp_path / "plain", point)
+    phased = model_with_card(tiny_model, tmp_path / "phased", dict(
+        point, run=dict(point["run"], phases=2),
+        postprocess=dict(point["postprocess"], phase_support=3)))
+    pillow = model_with_card(tiny_model, tmp_path / "pillow", dict(
+        card, run=dict(card["run"], phases=2)))
+
+    def run(folder, model, *flags):
+        code, stdout, stderr = run_cli(folder, "--model", model, "-q", *flags)
+        assert code == 0, stderr
+        out = json.loads(stdout)
+        phases = out["settings"]["phases"]
+        for s in out["snippets"]:
+            assert ("phase_boxes" in s) == (phases == 2)
+            assert ("phase_mirrored_boxes" in s) == (phases == 2 and out["settings"]["mirror"])
+        return phases, out["settings"]["min_support"], out
+
+    assert run(large, plain)[:2] == (1, 2)
+    assert run(large, plain, "--phases", 2)[:2] == (2, 4)         # twice min_support
+    assert run(large, phased)[:2] == (2, 3)                         # the card's phase_support
+    out = run(large, phased, "--score-threshold", 0, "--all-regions")[2]
+    assert all(s["phase_boxes"] and s["phase_boxes"] != s["boxes"]    # other pixels
+               for s in out["snippets"])
+    assert run(large, phased, "--no-mirror")[:2] == (2, 2)          # 3 of 4 runs -> 2 of 2
+    assert run(large, phased, "--phases", 1)[:2] == (1, 2)
+    assert run(small, phased)[:2] == (1, 2)                         # one grid: min_support
+    assert run(large, pillow)[0] == 1
+    _one_line_error(*run_cli(large, "--model", plain, "--phases", 3), "--phases")
+    broken = model_with_card(tiny_model, tmp_path / "broken", dict(
+        point, run=dict(point["run"], phases=3)))
+    _one_line_error(*run_cli(large, "--model", broken), "model.json", "run.phases")
+    broken = model_with_card(tiny_model, tmp_path / "broken2", dict(
+        point, postprocess=dict(point["postprocess"], phase_support=0)))
+    _one_line_error(*run_cli(large, "--model", broken), "model.json", "phase_support")
+
+
 def _one_line_error(code, stdout, stderr, *needles):
     assert code == 2, (code, stderr)
     assert "Traceback" not in stderr

@@ -307,6 +307,42 @@ def test_tune_lowers_the_matching_iou_when_it_joins_an_object_and_keeps_the_auth
     assert all(r["f1@0.25"] == 1.0 for r in rows) and chosen["match_iou"] == 0.1
 
 
+def test_tune_adds_the_second_sampling_grid_when_its_runs_support_an_object():
+    """Looks records (run_looks'): one snippet, its runs at two point-sampling grids, each
+    plain and mirrored.  The chair is seen by the first grid's plain run and by both of the
+    second grid's runs, a false box by the first grid's plain run alone.  At one grid and
+    support 2 nothing is reported (F1 0); both grids at support 2 report the chair alone (F1
+    1), so two grids win, at the lowest support that does.  Where the second grid's runs see
+    nothing new, every row ties with one grid, which wins."""
+    from parq_runtime.boxes import Box
+    from parq_runtime.geometry import box_corners
+    from parq_train import tune
+
+    def box(x, score):
+        c, s, R = np.array([x, 0.0, 1.0]), np.array([0.5, 0.8, 0.5]), np.eye(3)
+        return Box(c, s, R, 0.0, 0, "chair", score, box_corners(c, s, R)), c
+
+    def no_floor(n, guess):
+        raise AssertionError("no floor classes: no floor is looked for")
+
+    truth = [box(0.0, 1.0)[0]]
+    up = (0.0, 0.0, 1.0)
+    first = [([box(0.0, 0.9), box(1.5, 0.9)], False, 0.0), ([], True, 0.0)]
+    second = [([box(0.02, 0.9)], False, 0.5), ([box(-0.02, 0.85)], True, 0.5)]
+    best = tune.row_of(0.5, tune.REGIONS[-1], "mean", 2, 10.0, {})
+    best.update(match_iou=0.1)
+    (phases, support), rows = tune.select_phases([([first + second], truth, up)], ["chair"],
+                                                 best, no_floor, mirror=True)
+    assert (rows[0]["phases"], rows[0]["min_support"], rows[0]["f1@0.25"]) == (1, 2, 0.0)
+    assert [(r["min_support"], r["f1@0.25"]) for r in rows[1:4]] == [
+        (1, 0.6667), (2, 1.0), (3, 1.0)]
+    assert (phases, support) == (2, 2)
+    (phases, support), rows = tune.select_phases(
+        [([first + [([], False, 0.5), ([], True, 0.5)]], truth, up)], ["chair"],
+        dict(best, min_support=1), no_floor, mirror=True)
+    assert rows[0]["f1@0.25"] == 0.6667 and (phases, support) == (1, None)
+
+
 def test_tune_with_mirror_runs_counts_both_runs_and_scores_alike_in_any_number_of_jobs():
     """Mirror records: each snippet is (plain, mirrored).  The chair is found by both runs of
     the one snippet, a false box by the plain run only; support 2 (runs) keeps the chair
@@ -700,7 +736,7 @@ def test_tune_a_model_folder_writes_a_new_folder_with_the_choice(tiny_model, tmp
     chosen = card.raw["extra"]["postprocess_tuning"]["chosen"]
     for key in tune.CHOSEN:
         assert card.raw["postprocess"][key] == chosen[key]
-    assert card.raw["run"] == {"iters": 2, "queries": 8, "mirror": False}  # as tuned
+    assert card.raw["run"] == {"iters": 2, "queries": 8, "mirror": False, "phases": 1}
     assert card.raw["query_order"] == json.loads((tiny_model / "model.json").read_text())[
         "query_order"]
     assert tune.main([str(tiny_model), "--data", str(tmp_path / "val"), "-o", str(out)]) == 2
@@ -708,9 +744,30 @@ def test_tune_a_model_folder_writes_a_new_folder_with_the_choice(tiny_model, tmp
     assert tune.main([str(tiny_model), "--data", str(tmp_path / "val"), "-o", str(mirrored),
                       "--queries", "8", "--mirror", "--jobs", "2", "--min-f1-50", "0.2"]) == 0
     card = model_card.load(mirrored)
-    assert card.raw["run"] == {"iters": 2, "queries": 8, "mirror": True}
+    assert card.raw["run"] == {"iters": 2, "queries": 8, "mirror": True, "phases": 1}
     record = card.raw["extra"]["postprocess_tuning"]
     assert record["mirror"] is True
+    # --phase-data: the same rooms at twice the size choose the sampling grids and support,
+    # for a model that point-samples (the tiny model's card made to)
+    from parq_export import card_rewrite
+    point = tmp_path / "point"
+    card_rewrite.rewrite(tiny_model, point, lambda card: card["image"].update(filter="point"))
+    parq_synth.generate(tmp_path / "val-large", 2, 2000, frames=8, size=(128, 96))
+    phased = tmp_path / "tuned-phases"
+    assert tune.main([str(point), "--data", str(tmp_path / "val"), "-o", str(phased),
+                      "--queries", "8", "--mirror", "--phase-data",
+                      str(tmp_path / "val-large")]) == 0
+    card = model_card.load(phased)
+    phase_record = card.raw["extra"]["postprocess_tuning"]
+    assert phase_record["phase_data"] == [str(tmp_path / "val-large")]
+    assert card.raw["run"]["phases"] == phase_record["phases"] in (1, 2)
+    assert card.raw["postprocess"]["phase_support"] == phase_record["phase_support"]
+    assert (phase_record["phase_support"] is None) == (phase_record["phases"] == 1)
+    for model, data in ((point, "val"), (tiny_model, "val-large")):   # one grid: refused
+        assert tune.main([str(model), "--data", str(tmp_path / "val"), "-o",
+                          str(tmp_path / "refused"), "--phase-data", str(tmp_path / data),
+                          "--queries", "8"]) == 2
+    assert not (tmp_path / "refused").exists()
     assert record["criterion"] == "max F1@0.25 with F1@0.5 >= 0.2"
 
 
