@@ -105,7 +105,7 @@ def parser() -> argparse.ArgumentParser:
                         "twice the network size each way with a card that point-samples: 2 "
                         "adds a run on the pixels half a network pixel over (and its mirror "
                         "run), twice the time; smaller frames have one grid (default: the "
-                        "model card's run setting, 2 for the demo)")
+                        "model card's run setting, 1 for the demo: no gain held out)")
     p.add_argument("--form", choices=("auto", "cached", "folded"), default="auto",
                    help="cross-attention form: auto picks the cheaper exact one (default)")
     p.add_argument("--keyframe-angle", type=non_negative_float, default=15.0,
