@@ -470,7 +470,7 @@ def select_keep(records: list, classes, best: dict, sweep, mirror: bool = False,
 
 def fuse_looks(records: list, settings: dict, phases: int) -> list:
     """Per scene of ``records`` (run_looks'): (its SceneFusion, support 1, of the runs at the
-    first ``phases`` sampling grids, with ``settings``' threshold, region and fusion), truth,
+    first ``phases`` sampling grids with ``settings``' threshold, region and fusion, truth,
     up)."""
     threshold, region = settings["score_threshold"], settings["eval_region"]
     fused = []
@@ -494,7 +494,7 @@ def select_phases(records: list, classes, best: dict, sweep, mirror: bool = Fals
     frames are at least twice the network size; ``sweep`` their floors): ``best`` at one
     sampling grid, its own support, against both grids at every support from 1 to twice
     :func:`select_keep`'s largest (the support counts runs, twice as many); one grid wins ties
-    (docs/demo-experiments.md, "A second point-sampling phase")."""
+    (docs/demo-experiments.md, "Frames larger than the network")."""
     def row(phases, fused, support):
         pairs = floor_pairs(fused, support, best["floor_classes"], best["floor_weight"], sweep)
         return dict(scored_row(best, support, evaluation.evaluate(pairs, classes)),
