@@ -146,23 +146,12 @@ def run_once(detector, folders, iters: int, queries: int, stride: int | None = N
     """Per scene: (snippets as [(box, its local center)], truth, up); ``stride``: keyframes
     between snippet starts (None: parq-run's default, no overlap); ``mirror``: each snippet is
     a pair (plain, mirrored) of such lists, the second from its mirror-image run."""
-    settings = scene.RunSettings(iters=iters, queries=queries, score_threshold=0.0,
-                                 region=False, stride=stride, mirror=mirror, phases=1)
-    out = []
-    for folder in folders:
-        capture = readers.open_capture(folder)
-        result = scene.run(detector, capture, settings)
-        snippets = []
-        for s in result.snippets:
-            T_local_world = geometry.invert(s.T_world_local)
+    def record(s, local, phases):
+        return (local(s.boxes), local(s.mirrored)) if mirror else local(s.boxes)
 
-            def local(boxes):
-                return [(b, geometry.transform(T_local_world, b.center)) for b in boxes]
-
-            snippets.append((local(s.boxes), local(s.mirrored)) if mirror else local(s.boxes))
-        truth, up = evaluation.load_ground_truth(folder / "boxes.json")
-        out.append((snippets, truth, up))
-    return out
+    return detect_scenes(detector, folders, scene.RunSettings(
+        iters=iters, queries=queries, score_threshold=0.0, region=False, stride=stride,
+        mirror=mirror, phases=1), record)
 
 
 def run_looks(detector, folders, iters: int, queries: int, mirror: bool) -> list:
@@ -170,12 +159,29 @@ def run_looks(detector, folders, iters: int, queries: int, mirror: bool) -> list
     [(box, its local center)], mirrored, phase), each snippet run at both point-sampling
     grids (parq-run --phases 2; scenes whose frames have one grid get one) and, with
     ``mirror``, each also mirrored."""
-    settings = scene.RunSettings(iters=iters, queries=queries, score_threshold=0.0,
-                                 region=False, mirror=mirror, phases=2)
+    def record(s, local, phases):
+        looks = [(local(s.boxes), False, 0.0)]
+        if mirror:
+            looks.append((local(s.mirrored), True, 0.0))
+        if phases > 1:
+            looks.append((local(s.phased), False, PHASES[1]))
+            if mirror:
+                looks.append((local(s.phased_mirrored), True, PHASES[1]))
+        return looks
+
+    return detect_scenes(detector, folders, scene.RunSettings(
+        iters=iters, queries=queries, score_threshold=0.0, region=False, mirror=mirror,
+        phases=2), record)
+
+
+def detect_scenes(detector, folders, settings, record) -> list:
+    """Per scene of ``folders``: ([record(snippet, local, phases) for each snippet of one
+    scene.run at ``settings``], truth, up), where ``local(boxes)`` pairs each box with its
+    center in that snippet's frame and ``phases`` is the sampling grids the scene was run at:
+    what run_once and run_looks share."""
     out = []
     for folder in folders:
-        capture = readers.open_capture(folder)
-        result = scene.run(detector, capture, settings)
+        result = scene.run(detector, readers.open_capture(folder), settings)
         snippets = []
         for s in result.snippets:
             T_local_world = geometry.invert(s.T_world_local)
@@ -183,14 +189,7 @@ def run_looks(detector, folders, iters: int, queries: int, mirror: bool) -> list
             def local(boxes):
                 return [(b, geometry.transform(T_local_world, b.center)) for b in boxes]
 
-            looks = [(local(s.boxes), False, 0.0)]
-            if mirror:
-                looks.append((local(s.mirrored), True, 0.0))
-            if result.phases > 1:
-                looks.append((local(s.phased), False, PHASES[1]))
-                if mirror:
-                    looks.append((local(s.phased_mirrored), True, PHASES[1]))
-            snippets.append(looks)
+            snippets.append(record(s, local, result.phases))
         truth, up = evaluation.load_ground_truth(folder / "boxes.json")
         out.append((snippets, truth, up))
     return out

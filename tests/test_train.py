@@ -16,6 +16,21 @@ from parq_train.data import Snippet
 from conftest import tiny_config
 
 
+def _chair(x, score, size=(0.5, 0.8, 0.5)):
+    """(a chair Box at (x, 0, 1) of ``size``, axis-aligned, with ``score``; its center): one
+    snippet detection as parq_train.tune's records hold it, the local frame the world's."""
+    from parq_runtime.boxes import Box
+    from parq_runtime.geometry import box_corners
+
+    c, s, R = np.array([x, 0.0, 1.0]), np.array(size, dtype=float), np.eye(3)
+    return Box(c, s, R, 0.0, 0, "chair", score, box_corners(c, s, R)), c
+
+
+def _no_floor(n, guess):
+    """A tune ``sweep`` for tests without floor classes: none may be looked for."""
+    raise AssertionError("no floor classes: no floor is looked for")
+
+
 def test_matching_hungarian_plus_proximity():
     reference = torch.tensor([[0.0, 0, 1], [0.05, 0, 1], [2, 0, 1], [0.5, 0, 3]])
     prob = torch.full((4, 10), 0.1)
@@ -188,14 +203,9 @@ def test_tune_last_pass_moves_threshold_and_support_together_and_keeps_best_on_t
     one: at support 2 only A is reported (F1 2/3); support 1 reports B too, and above 0.55
     nothing false (F1 1), so the last pass picks support 1 at the first threshold that
     drops the false box.  With chair A alone every row ties the given choice, which stays."""
-    from parq_runtime.boxes import Box
-    from parq_runtime.geometry import box_corners
     from parq_train import tune
 
-    def box(x, score):
-        c, s, R = np.array([x, 0.0, 1.0]), np.array([0.5, 0.8, 0.5]), np.eye(3)
-        return Box(c, s, R, 0.0, 0, "chair", score, box_corners(c, s, R)), c
-
+    box = _chair
     up, a, b, false = (0.0, 0.0, 1.0), box(0.0, 0.9), box(3.0, 0.9), box(6.0, 0.55)
     records = [([[a, b], [a], [false]], [a[0], b[0]], up)]
     best, _ = tune.select(records, ["chair"], thresholds=(0.5,), regions=tune.REGIONS[-1:],
@@ -216,14 +226,9 @@ def test_tune_chooses_scene_nms_after_the_grid_and_off_on_ties():
     """Two detections of each of two snippets on one chair grow two scene boxes: the grid's
     best keeps both (F1 2/3); scene NMS at the first IoU they exceed reports one (F1 1);
     with nothing to remove, off (the first choice) wins the tie."""
-    from parq_runtime.boxes import Box
-    from parq_runtime.geometry import box_corners
     from parq_train import tune
 
-    def box(x, score):
-        c, s, R = np.array([x, 0.0, 1.0]), np.array([0.5, 0.8, 0.5]), np.eye(3)
-        return Box(c, s, R, 0.0, 0, "chair", score, box_corners(c, s, R)), c
-
+    box = _chair
     truth = [box(0.0, 1.0)[0]]
     up = (0.0, 0.0, 1.0)
     pair = [box(0.0, 0.9), box(0.2, 0.8)]              # their IoU: 0.3 / 0.7 = 0.43
@@ -259,10 +264,7 @@ def test_tune_chooses_the_label_vote_when_it_scores_and_the_authors_rule_on_ties
     best = tune.candidate(records, ["chair", "table"], 0.5, tune.REGIONS[-1], "mean", 2, 10.0,
                           scene_nms=0.1)
 
-    def no_floor(n, guess):
-        raise AssertionError("no floor classes: no floor is looked for")
-
-    chosen, rows = tune.select_labels(records, ["chair", "table"], best, no_floor)
+    chosen, rows = tune.select_labels(records, ["chair", "table"], best, _no_floor)
     assert [(r["labels"], r["f1@0.25"]) for r in rows] == [("best", 0.0), ("vote", 1.0)]
     assert chosen["labels"] == "vote"
     assert {k: chosen[k] for k in tune.CHOSEN if k != "labels"} == {
@@ -270,7 +272,7 @@ def test_tune_chooses_the_label_vote_when_it_scores_and_the_authors_rule_on_ties
     agreeing = [([[box("table", 0.85)], [box("table", 0.9)]], truth, up)]
     best = tune.candidate(agreeing, ["chair", "table"], 0.5, tune.REGIONS[-1], "mean", 2, 10.0,
                           scene_nms=0.1)
-    chosen, rows = tune.select_labels(agreeing, ["chair", "table"], best, no_floor)
+    chosen, rows = tune.select_labels(agreeing, ["chair", "table"], best, _no_floor)
     assert rows[0]["f1@0.25"] == rows[1]["f1@0.25"] == 1.0 and chosen["labels"] == "best"
 
 
@@ -279,23 +281,17 @@ def test_tune_lowers_the_matching_iou_when_it_joins_an_object_and_keeps_the_auth
     matching IoU (0.1) keeps two boxes of support 1 and reports nothing, F1 0; 0.05 joins them
     into one box on the chair, F1 1, and lower IoUs tie with it (the first wins).  With one
     snippet every IoU scores alike and the authors' stays; the rest of ``best`` is kept."""
-    from parq_runtime.boxes import Box
-    from parq_runtime.geometry import box_corners
     from parq_train import tune
 
     def box(x, score):
-        c, s, R = np.array([x, 0.0, 1.0]), np.array([1.0, 1.0, 1.0]), np.eye(3)
-        return Box(c, s, R, 0.0, 0, "chair", score, box_corners(c, s, R)), c
-
-    def no_floor(n, guess):
-        raise AssertionError("no floor classes: no floor is looked for")
+        return _chair(x, score, size=(1.0, 1.0, 1.0))
 
     truth = [box(0.425, 1.0)[0]]
     up = (0.0, 0.0, 1.0)
     records = [([[box(0.0, 0.9)], [box(0.85, 0.9)]], truth, up)]
     best = tune.candidate(records, ["chair"], 0.5, tune.REGIONS[-1], "mean", 2, 10.0)
     assert (best["match_iou"], best["f1@0.25"]) == (0.1, 0.0)
-    chosen, rows = tune.select_match(records, ["chair"], best, no_floor)
+    chosen, rows = tune.select_match(records, ["chair"], best, _no_floor)
     assert [(r["match_iou"], r["f1@0.25"]) for r in rows] == [
         (0.1, 0.0), (0.05, 1.0), (0.02, 1.0), (0.01, 1.0)]
     assert chosen["match_iou"] == 0.05
@@ -303,7 +299,7 @@ def test_tune_lowers_the_matching_iou_when_it_joins_an_object_and_keeps_the_auth
         k: best[k] for k in tune.CHOSEN if k != "match_iou"}
     alone = [([[box(0.425, 0.9)]], truth, up)]
     best = tune.candidate(alone, ["chair"], 0.5, tune.REGIONS[-1], "mean", 1, 10.0)
-    chosen, rows = tune.select_match(alone, ["chair"], best, no_floor)
+    chosen, rows = tune.select_match(alone, ["chair"], best, _no_floor)
     assert all(r["f1@0.25"] == 1.0 for r in rows) and chosen["match_iou"] == 0.1
 
 
@@ -314,17 +310,9 @@ def test_tune_adds_the_second_sampling_grid_when_its_runs_support_an_object():
     support 2 nothing is reported (F1 0); both grids at support 2 report the chair alone (F1
     1), so two grids win, at the lowest support that does.  Where the second grid's runs see
     nothing new, every row ties with one grid, which wins."""
-    from parq_runtime.boxes import Box
-    from parq_runtime.geometry import box_corners
     from parq_train import tune
 
-    def box(x, score):
-        c, s, R = np.array([x, 0.0, 1.0]), np.array([0.5, 0.8, 0.5]), np.eye(3)
-        return Box(c, s, R, 0.0, 0, "chair", score, box_corners(c, s, R)), c
-
-    def no_floor(n, guess):
-        raise AssertionError("no floor classes: no floor is looked for")
-
+    box = _chair
     truth = [box(0.0, 1.0)[0]]
     up = (0.0, 0.0, 1.0)
     first = [([box(0.0, 0.9), box(1.5, 0.9)], False, 0.0), ([], True, 0.0)]
@@ -332,14 +320,14 @@ def test_tune_adds_the_second_sampling_grid_when_its_runs_support_an_object():
     best = tune.row_of(0.5, tune.REGIONS[-1], "mean", 2, 10.0, {})
     best.update(match_iou=0.1)
     (phases, support), rows = tune.select_phases([([first + second], truth, up)], ["chair"],
-                                                 best, no_floor, mirror=True)
+                                                 best, _no_floor, mirror=True)
     assert (rows[0]["phases"], rows[0]["min_support"], rows[0]["f1@0.25"]) == (1, 2, 0.0)
     assert [(r["min_support"], r["f1@0.25"]) for r in rows[1:4]] == [
         (1, 0.6667), (2, 1.0), (3, 1.0)]
     assert (phases, support) == (2, 2)
     (phases, support), rows = tune.select_phases(
         [([first + [([], False, 0.5), ([], True, 0.5)]], truth, up)], ["chair"],
-        dict(best, min_support=1), no_floor, mirror=True)
+        dict(best, min_support=1), _no_floor, mirror=True)
     assert rows[0]["f1@0.25"] == 0.6667 and (phases, support) == (1, None)
 
 
