@@ -12,7 +12,7 @@ fusion, support, scene NMS, floor prior, label vote):
    those records must give the card's tuned score (checked, printed);
 2. coordinate ascent: two sweeps over the classes in the card's order, each class's threshold
    set to the value of parq_train.tune's THRESHOLDS that scores best with the others fixed,
-   by the card's criterion (parq_train.tune.Criterion: best F1@0.25 with F1@0.5 of at least
+   by the card's criterion (parq_train.postprocess_search.Criterion: best F1@0.25 with F1@0.5 of at least
    0.35, then F1@0.5; the current value wins ties);
 3. one pass over the held-out scenes (seeds 3000 and 5000, 120 each, spread.py's cache), the
    card's threshold and the per-class ones scored on the same detections, the difference
@@ -37,7 +37,7 @@ import tradeoff
 
 
 def keep_above(records: list, thresholds: dict, mirror: bool) -> list:
-    """``records`` (parq_train.tune.run_once's) with each snippet's boxes cut to those scoring
+    """``records`` (parq_train.validation_runs.run_once's) with each snippet's boxes cut to those scoring
     above their class's threshold."""
     def kept(boxes):
         return [(b, c) for b, c in boxes if b.score > thresholds[b.class_name]]
@@ -49,18 +49,18 @@ def keep_above(records: list, thresholds: dict, mirror: bool) -> list:
 def scene_pairs(records: list, thresholds: dict, post: dict, mirror: bool, sweep) -> list:
     """(scene boxes, truth, up) per scene: the card's post-processing ``post`` with the
     per-class ``thresholds`` in place of its one."""
-    from parq_train import tune
+    from parq_train import postprocess_search
 
-    fused = tune.fuse_records(keep_above(records, thresholds, mirror), -1.0,
+    fused = postprocess_search.fuse_records(keep_above(records, thresholds, mirror), -1.0,
                               post["eval_region"], post["fusion"], post["ray_ratio"], mirror,
                               post["scene_nms"], post["labels"])
-    return tune.floor_pairs(fused, post["min_support"], post["floor_classes"],
+    return postprocess_search.floor_pairs(fused, post["min_support"], post["floor_classes"],
                             post["floor_weight"], sweep)
 
 
 def f1s(pairs: list, classes) -> dict:
     """{"f1@0.25": F, "f1@0.5": F}, pooled over the scenes as parq-eval pools them (the keys
-    parq_train.tune.Criterion ranks by)."""
+    parq_train.postprocess_search.Criterion ranks by)."""
     summed = spread.counts_of(pairs, classes).sum(axis=0)
     return {f"f1@{t}": float(v) for t, v in zip(spread.THRESHOLDS, spread.f1(summed))}
 
@@ -69,13 +69,13 @@ def ascend(records, classes, post, mirror, sweep, criterion, thresholds: dict, b
            sweeps: int = 2) -> tuple:
     """(per-class thresholds, their validation F1s, the trace) by coordinate ascent from
     ``thresholds``, which score ``best`` (module doc, step 2); ``criterion``: a
-    parq_train.tune.Criterion."""
-    from parq_train import tune
+    parq_train.postprocess_search.Criterion."""
+    from parq_train import postprocess_search
 
     trace = []
     for n in range(sweeps):
         for c in classes:
-            for value in tune.THRESHOLDS:
+            for value in postprocess_search.THRESHOLDS:
                 if float(value) == thresholds[c]:
                     continue
                 trial = dict(thresholds, **{c: float(value)})
@@ -127,7 +127,7 @@ def main():
     args = p.parse_args()
 
     from parq_runtime import Detector
-    from parq_train import tune
+    from parq_train import postprocess_search, validation_runs
 
     detector = Detector(args.model)
     card, classes = detector.card, list(detector.classes)
@@ -136,21 +136,21 @@ def main():
     mirror = card.run_mirror
     start = time.perf_counter()
 
-    folders = tune.validation_folders(args.validation, args.validation_scenes)
-    records = tune.run_once(detector, folders, iters, queries, mirror=mirror)
-    sweep = tune.floor_sweep(folders)
+    folders = validation_runs.validation_folders(args.validation, args.validation_scenes)
+    records = validation_runs.run_once(detector, folders, iters, queries, mirror=mirror)
+    sweep = validation_runs.floor_sweep(folders)
     card_thresholds = {c: float(post["score_threshold"]) for c in classes}
     card_val = f1s(scene_pairs(records, card_thresholds, post, mirror, sweep), classes)
     print(f"validation, {len(folders)} scenes, the card's threshold: F1@0.25 "
           f"{card_val['f1@0.25']:.4f}  F1@0.5 {card_val['f1@0.5']:.4f}", file=sys.stderr,
           flush=True)
     thresholds, chosen_val, trace = ascend(records, classes, post, mirror, sweep,
-                                           tune.Criterion(args.min_f1_50), card_thresholds,
+                                           postprocess_search.Criterion(args.min_f1_50), card_thresholds,
                                            card_val)
 
     scenes, _ = tradeoff.scenes_from_arguments(args)
-    held = tune.run_once(detector, scenes, iters, queries, mirror=mirror)
-    held_sweep = tune.floor_sweep(scenes)
+    held = validation_runs.run_once(detector, scenes, iters, queries, mirror=mirror)
+    held_sweep = validation_runs.floor_sweep(scenes)
     counts = [spread.counts_of(scene_pairs(held, t, post, mirror, held_sweep), classes)
               for t in (card_thresholds, thresholds)]
     rows = spread.spread(counts, args.resamples, block=40)

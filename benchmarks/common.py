@@ -110,10 +110,10 @@ def open_validation(args, prog: str) -> tuple:
     line naming ``prog``."""
     from parq_runtime import Detector
     from parq_runtime.errors import ParqError
-    from parq_train import tune
+    from parq_train import validation_runs
 
     try:
-        return Detector(args.model), tune.validation_folders(args.val, None)
+        return Detector(args.model), validation_runs.validation_folders(args.val, None)
     except ParqError as e:
         sys.exit(f"{prog}: {e}")
 

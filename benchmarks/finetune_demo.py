@@ -30,7 +30,7 @@ import numpy as np
 import common
 import spread
 import tradeoff
-from parq_train import tune
+from parq_train import validation_runs
 
 
 def main() -> int:
@@ -61,7 +61,7 @@ def main() -> int:
         torch.set_num_threads(args.threads)
     try:
         demo = model_card.load(args.model)
-        folders = tune.validation_folders(args.val, None)
+        folders = validation_runs.validation_folders(args.val, None)
         model = rebuild.rebuild(args.model)
     except ParqError as e:
         sys.exit(f"finetune_demo: {e}")

@@ -36,7 +36,7 @@ from scipy.optimize import linear_sum_assignment
 
 import common
 import spread
-from parq_train import tune
+from parq_train import postprocess_search, validation_runs
 
 
 def objectness_logits(logits: np.ndarray) -> np.ndarray:
@@ -180,7 +180,7 @@ def fused_pairs(scenes: list, card, Variant, knobs: dict, threshold: float, matc
                     and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]]
             fusion.add(kept, snippet, mirrored)
         fused.append((fusion, truth, up))
-    return tune.floor_pairs(fused, card.min_support, card.floor_classes, card.floor_weight,
+    return postprocess_search.floor_pairs(fused, card.min_support, card.floor_classes, card.floor_weight,
                             sweep)
 
 
@@ -206,7 +206,7 @@ def main() -> int:
     minutes = (time.perf_counter() - start) / 60
     print(f"collected {len(folders)} scenes in {minutes:.1f} min", flush=True)
     scenes = {False: decoded(records, detector, False), True: decoded(records, detector, True)}
-    Variant, sweep = variant_fusion(), tune.floor_sweep(folders)
+    Variant, sweep = variant_fusion(), validation_runs.floor_sweep(folders)
     counts, rows = [], []
     for name, (objectness, threshold, knobs, match_iou) in VARIANTS.items():
         pairs = fused_pairs(scenes[objectness], card, Variant, knobs,

@@ -2,7 +2,7 @@
 mirror image buys, chosen on validation scenes and scored on held-out ones.
 
 1. *Validation*: runs the model once on each validation scene with mirror runs (every snippet
-   box kept: threshold 0, no region; ``parq_train.tune.run_once``), then fuses the plain and the
+   box kept: threshold 0, no region; ``parq_train.validation_runs.run_once``), then fuses the plain and the
    mirrored detections under a grid of post-processings (score threshold x ray ratio x minimum
    support, support counting runs; the card's evaluation region) and prints the best by F1@0.25
    + F1@0.5, beside the card's own post-processing without mirror runs, fused from the same
@@ -33,7 +33,7 @@ import numpy as np
 import common
 import spread
 import tradeoff
-from parq_train import tune
+from parq_train import postprocess_search, validation_runs
 
 THRESHOLDS = (0.7, 0.75, 0.8, 0.85, 0.9)
 RATIOS = (10.0, 30.0)
@@ -42,12 +42,12 @@ SUPPORTS = (1, 2, 3, 4)
 
 def f1s(records: list, classes, threshold: float, region, ratio: float, support: int,
         mirror: bool) -> tuple:
-    """(F1@0.25, F1@0.5) of ``records`` (tune.run_once's with mirror runs) fused as parq-run
+    """(F1@0.25, F1@0.5) of ``records`` (validation_runs.run_once's with mirror runs) fused as parq-run
     fuses them with ray fusion and these settings, with or without the mirror runs."""
     if not mirror:
         records = [([plain for plain, _ in snippets], truth, up)
                    for snippets, truth, up in records]
-    m = tune.score(records, threshold, region, classes, "ray", support, ratio, mirror)
+    m = postprocess_search.score(records, threshold, region, classes, "ray", support, ratio, mirror)
     return round(m["0.25"]["f1"], 4), round(m["0.5"]["f1"], 4)
 
 
@@ -80,9 +80,9 @@ def main() -> int:
     detector = Detector(args.model)
     card = detector.card
     iters, queries = card.run_setting()
-    folders = tune.validation_folders(args.val, None)
+    folders = validation_runs.validation_folders(args.val, None)
     start = time.perf_counter()
-    records = tune.run_once(detector, folders, iters, queries, mirror=True)
+    records = validation_runs.run_once(detector, folders, iters, queries, mirror=True)
     collect_minutes = (time.perf_counter() - start) / 60
     from parq_runtime import scene
 

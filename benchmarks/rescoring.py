@@ -7,7 +7,7 @@ but scores F1 0.49.  The card keeps a fused box when enough runs support it and 
 detection scores above a threshold.  This script asks whether the statistics of each fused box's
 cluster of detections tell the right boxes from the wrong ones better than that:
 
-1. Runs the model once on the validation and the held-out scenes (``parq_train.tune.run_once``,
+1. Runs the model once on the validation and the held-out scenes (``parq_train.validation_runs.run_once``,
    the card's run setting, mirror runs as the card says; every snippet box kept).
 2. For each pre-fusion score threshold in --thresholds: fuses each scene (ray fusion, the card's
    ratio, no region, support 1), describes every cluster by :func:`features`, and labels it
@@ -39,7 +39,7 @@ import spread
 import tradeoff
 from parq_runtime import Detector, evaluation
 from parq_runtime.iou import iou_matrix
-from parq_train import tune
+from parq_train import postprocess_search, validation_runs
 
 LABEL_IOU = 0.25
 EVERYWHERE = (-np.inf, np.inf, -np.inf, np.inf)   # a region that keeps every box
@@ -54,7 +54,7 @@ FEATURES = ("log(1 + support)", "log(1 + members)", "log(1 + snippets)", "max sc
 def fuse(records: list, threshold: float, ray_ratio: float, mirror: bool) -> list:
     """Per scene: (SceneFusion of the snippet boxes scoring above ``threshold``, support 1,
     ray fusion, no region; truth; up; snippets)."""
-    fused = tune.fuse_records(records, threshold, EVERYWHERE, "ray", ray_ratio, mirror)
+    fused = postprocess_search.fuse_records(records, threshold, EVERYWHERE, "ray", ray_ratio, mirror)
     return [(*scene, len(snippets)) for scene, (snippets, _, _) in zip(fused, records)]
 
 
@@ -150,7 +150,7 @@ def f1s(pairs: list, classes) -> tuple:
 def card_pairs(records: list, card, mirror: bool) -> list:
     """The card's own rule on the same detections: its threshold, region, ratio, support and
     scene NMS."""
-    fused = tune.fuse_records(records, card.score_threshold, card.eval_region, card.fusion,
+    fused = postprocess_search.fuse_records(records, card.score_threshold, card.eval_region, card.fusion,
                               card.ray_ratio, mirror, card.scene_nms)
     return [(fusion.boxes_with_support(card.min_support), truth, up)
             for fusion, truth, up in fused]
@@ -210,10 +210,10 @@ def main() -> int:
     mirror = card.run_mirror
     runs = 2 if mirror else 1
     start = time.perf_counter()
-    validation = tune.run_once(detector, tune.validation_folders(args.val, args.val_scenes), iters,
+    validation = validation_runs.run_once(detector, validation_runs.validation_folders(args.val, args.val_scenes), iters,
                                queries, mirror=mirror)
     scenes, _ = tradeoff.scenes_from_arguments(args)
-    held_out = tune.run_once(detector, scenes, iters, queries, mirror=mirror)
+    held_out = validation_runs.run_once(detector, scenes, iters, queries, mirror=mirror)
     collect_minutes = (time.perf_counter() - start) / 60
 
     rows = [("card's rule", f1s(card_pairs(validation, card, mirror), classes),
