@@ -11,9 +11,9 @@ fusion, support, scene NMS, floor prior, label vote):
    card's run setting, as ``python -m parq_train.tune`` makes it; the card's own threshold on
    those records must give the card's tuned score (checked, printed);
 2. coordinate ascent: two sweeps over the classes in the card's order, each class's threshold
-   set to the value of parq_train.tune's THRESHOLDS that scores best with the others fixed,
-   by the card's criterion (parq_train.postprocess_search.Criterion: best F1@0.25 with F1@0.5 of at least
-   0.35, then F1@0.5; the current value wins ties);
+   set to the value of parq_train.postprocess_search's THRESHOLDS that scores best with the
+   others fixed, by the card's criterion (parq_train.postprocess_search.Criterion: best F1@0.25
+   with F1@0.5 of at least 0.35, then F1@0.5; the current value wins ties);
 3. one pass over the held-out scenes (seeds 3000 and 5000, 120 each, spread.py's cache), the
    card's threshold and the per-class ones scored on the same detections, the difference
    paired and bootstrapped as spread.py does.
@@ -37,8 +37,8 @@ import tradeoff
 
 
 def keep_above(records: list, thresholds: dict, mirror: bool) -> list:
-    """``records`` (parq_train.validation_runs.run_once's) with each snippet's boxes cut to those scoring
-    above their class's threshold."""
+    """``records`` (parq_train.validation_runs.run_once's) with each snippet's boxes cut to those
+    scoring above their class's threshold."""
     def kept(boxes):
         return [(b, c) for b, c in boxes if b.score > thresholds[b.class_name]]
 
@@ -49,13 +49,13 @@ def keep_above(records: list, thresholds: dict, mirror: bool) -> list:
 def scene_pairs(records: list, thresholds: dict, post: dict, mirror: bool, sweep) -> list:
     """(scene boxes, truth, up) per scene: the card's post-processing ``post`` with the
     per-class ``thresholds`` in place of its one."""
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
-    fused = postprocess_search.fuse_records(keep_above(records, thresholds, mirror), -1.0,
-                              post["eval_region"], post["fusion"], post["ray_ratio"], mirror,
-                              post["scene_nms"], post["labels"])
-    return postprocess_search.floor_pairs(fused, post["min_support"], post["floor_classes"],
-                            post["floor_weight"], sweep)
+    fused = search.fuse_records(keep_above(records, thresholds, mirror), -1.0,
+                                post["eval_region"], post["fusion"], post["ray_ratio"], mirror,
+                                post["scene_nms"], post["labels"])
+    return search.floor_pairs(fused, post["min_support"], post["floor_classes"],
+                              post["floor_weight"], sweep)
 
 
 def f1s(pairs: list, classes) -> dict:
@@ -70,12 +70,12 @@ def ascend(records, classes, post, mirror, sweep, criterion, thresholds: dict, b
     """(per-class thresholds, their validation F1s, the trace) by coordinate ascent from
     ``thresholds``, which score ``best`` (module doc, step 2); ``criterion``: a
     parq_train.postprocess_search.Criterion."""
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     trace = []
     for n in range(sweeps):
         for c in classes:
-            for value in postprocess_search.THRESHOLDS:
+            for value in search.THRESHOLDS:
                 if float(value) == thresholds[c]:
                     continue
                 trial = dict(thresholds, **{c: float(value)})
@@ -127,7 +127,7 @@ def main():
     args = p.parse_args()
 
     from parq_runtime import Detector
-    from parq_train import postprocess_search, validation_runs
+    from parq_train import postprocess_search as search, validation_runs
 
     detector = Detector(args.model)
     card, classes = detector.card, list(detector.classes)
@@ -144,9 +144,9 @@ def main():
     print(f"validation, {len(folders)} scenes, the card's threshold: F1@0.25 "
           f"{card_val['f1@0.25']:.4f}  F1@0.5 {card_val['f1@0.5']:.4f}", file=sys.stderr,
           flush=True)
-    thresholds, chosen_val, trace = ascend(records, classes, post, mirror, sweep,
-                                           postprocess_search.Criterion(args.min_f1_50), card_thresholds,
-                                           card_val)
+    criterion = search.Criterion(args.min_f1_50)
+    thresholds, chosen_val, trace = ascend(records, classes, post, mirror, sweep, criterion,
+                                           card_thresholds, card_val)
 
     scenes, _ = tradeoff.scenes_from_arguments(args)
     held = validation_runs.run_once(detector, scenes, iters, queries, mirror=mirror)

@@ -65,8 +65,8 @@ def instance_pixels(folder: pathlib.Path, frame_names: list, count: int,
 
 
 def run_scene(detector, folder: pathlib.Path, iters: int, queries: int) -> dict:
-    """One scene's raw snippet detections (with local centers, for postprocess_search.score), its truth and,
-    per ground-truth box, the best IoU any detection reaches and its visibility."""
+    """One scene's raw snippet detections (with local centers, for postprocess_search.score), its
+    truth and, per ground-truth box, the best IoU any detection reaches and its visibility."""
     from parq_runtime import evaluation, geometry, readers, scene
     from parq_runtime.iou import iou_matrix
 
@@ -101,11 +101,11 @@ def one_class(box):
 def scores(scenes: list, card, classes, seen: float) -> dict:
     """F1 (as parq-eval), class-agnostic, and over seen objects only, at the card's
     post-processing."""
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     def f1(records, names):
-        m = postprocess_search.score(records, card.score_threshold, card.eval_region, names, card.fusion,
-                       support_of(card), card.ray_ratio, scene_nms=card.scene_nms)
+        m = search.score(records, card.score_threshold, card.eval_region, names, card.fusion,
+                         support_of(card), card.ray_ratio, scene_nms=card.scene_nms)
         return {t: {k: round(m[t][k], 4) for k in ("precision", "recall", "f1")} for t in m}
 
     every = [(s["snippets"], s["truth"], s["up"]) for s in scenes]
@@ -120,7 +120,7 @@ def scores(scenes: list, card, classes, seen: float) -> dict:
 def stages(scenes: list, card, classes) -> dict:
     """Recall at IoU 0.25 (and precision, once fused) through the post-processing steps."""
     from parq_runtime.iou import iou_matrix
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     truth = sum(len(s["truth"]) for s in scenes)
     above = 0
@@ -136,8 +136,8 @@ def stages(scenes: list, card, classes) -> dict:
                [s["reach"] for s in scenes]) >= IOUS[0])), 4)},
            f"score > {card.score_threshold}": {"recall": round(above / max(truth, 1), 4)}}
     for support in sorted({1, support_of(card)}):
-        m = postprocess_search.score(records, card.score_threshold, card.eval_region, classes, card.fusion,
-                       support, card.ray_ratio, scene_nms=card.scene_nms)[str(IOUS[0])]
+        m = search.score(records, card.score_threshold, card.eval_region, classes, card.fusion,
+                         support, card.ray_ratio, scene_nms=card.scene_nms)[str(IOUS[0])]
         out[f"fused ({card.fusion}), support {support}"] = {
             k: round(m[k], 4) for k in ("recall", "precision")}
     return out
@@ -153,7 +153,7 @@ def ray_errors(scenes: list, card, classes, radius: float = 1.0) -> dict:
     the detection's centre; a detection is matched to the nearest ground-truth centre of its
     class within ``radius`` metres, and unmatched ones stay as they are."""
     from parq_runtime import geometry
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     records = {fix: [] for fix in RAY_FIXES}
     along, across = [], []
@@ -191,8 +191,8 @@ def ray_errors(scenes: list, card, classes, radius: float = 1.0) -> dict:
             records[fix].append((fixed[fix], s["truth"], s["up"]))
     f1 = {}
     for fix in RAY_FIXES:
-        m = postprocess_search.score(records[fix], card.score_threshold, card.eval_region, classes,
-                       card.fusion, support_of(card), card.ray_ratio, scene_nms=card.scene_nms)
+        m = search.score(records[fix], card.score_threshold, card.eval_region, classes,
+                         card.fusion, support_of(card), card.ray_ratio, scene_nms=card.scene_nms)
         f1[fix] = {t: round(m[t]["f1"], 4) for t in m}
     return {"matched": len(along), "median_along": round(float(np.median(along)), 4) if along
             else None, "median_across": round(float(np.median(across)), 4) if across else None,

@@ -38,7 +38,7 @@ import numpy as np
 
 import common
 import spread
-from parq_train import postprocess_search, validation_runs
+from parq_train import postprocess_search as search, validation_runs
 
 THRESHOLDS = (0.75, 0.8, 0.85)
 ITERATIONS = 4     # the run whose every iteration is kept; the other runs use the card's
@@ -126,7 +126,8 @@ def collect(detector, folders: list, crops: tuple, references: tuple, iters: int
 def fuse(records: list, kinds: list, card, threshold: float) -> list:
     """Per scene, a SceneFusion (support 1) of the runs ``kinds`` (each plain and mirrored) of
     every snippet, boxes above ``threshold`` in the card's region, with the card's fusion, and
-    its floor found as parq-run finds it when a support is applied (postprocess_search.floor_pairs)."""
+    its floor found as parq-run finds it when a support is applied
+    (postprocess_search.floor_pairs)."""
     from parq_runtime.fusion import SceneFusion
 
     region = card.eval_region
@@ -179,7 +180,7 @@ def main() -> int:
             ("reference", r) for r in args.references]
     rows, counts = [], []
     def pairs(fused, support):    # the floor found near the kept boxes, as parq-run does
-        return postprocess_search.floor_pairs(fused, support, card.floor_classes, card.floor_weight, sweep)
+        return search.floor_pairs(fused, support, card.floor_classes, card.floor_weight, sweep)
 
     baseline = spread.counts_of(pairs(fuse(records, [iters], card, card.score_threshold),
                                       base_support), detector.classes)

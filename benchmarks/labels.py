@@ -36,7 +36,7 @@ from scipy.optimize import linear_sum_assignment
 
 import common
 import spread
-from parq_train import postprocess_search, validation_runs
+from parq_train import postprocess_search as search, validation_runs
 
 
 def objectness_logits(logits: np.ndarray) -> np.ndarray:
@@ -180,8 +180,8 @@ def fused_pairs(scenes: list, card, Variant, knobs: dict, threshold: float, matc
                     and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]]
             fusion.add(kept, snippet, mirrored)
         fused.append((fusion, truth, up))
-    return postprocess_search.floor_pairs(fused, card.min_support, card.floor_classes, card.floor_weight,
-                            sweep)
+    return search.floor_pairs(fused, card.min_support, card.floor_classes, card.floor_weight,
+                              sweep)
 
 
 def merged(pairs: list, classes) -> list:

@@ -2,11 +2,11 @@
 mirror image buys, chosen on validation scenes and scored on held-out ones.
 
 1. *Validation*: runs the model once on each validation scene with mirror runs (every snippet
-   box kept: threshold 0, no region; ``parq_train.validation_runs.run_once``), then fuses the plain and the
-   mirrored detections under a grid of post-processings (score threshold x ray ratio x minimum
-   support, support counting runs; the card's evaluation region) and prints the best by F1@0.25
-   + F1@0.5, beside the card's own post-processing without mirror runs, fused from the same
-   detections.  The grid is the card's neighbourhood (ray fusion only, one region; 40
+   box kept: threshold 0, no region; ``parq_train.validation_runs.run_once``), then fuses the
+   plain and the mirrored detections under a grid of post-processings (score threshold x ray
+   ratio x minimum support, support counting runs; the card's evaluation region) and prints the
+   best by F1@0.25 + F1@0.5, beside the card's own post-processing without mirror runs, fused
+   from the same detections.  The grid is the card's neighbourhood (ray fusion only, one region; 40
    candidates), the question this script was written to answer before the card had mirror runs;
    the full grid is ``python -m parq_train.tune MODEL --mirror``, which made the demo's card.
 2. *Held out*: ``parq-run``'s own pipeline (``scene.run``) on the held-out scenes (parq-synth
@@ -33,7 +33,7 @@ import numpy as np
 import common
 import spread
 import tradeoff
-from parq_train import postprocess_search, validation_runs
+from parq_train import postprocess_search as search, validation_runs
 
 THRESHOLDS = (0.7, 0.75, 0.8, 0.85, 0.9)
 RATIOS = (10.0, 30.0)
@@ -42,12 +42,12 @@ SUPPORTS = (1, 2, 3, 4)
 
 def f1s(records: list, classes, threshold: float, region, ratio: float, support: int,
         mirror: bool) -> tuple:
-    """(F1@0.25, F1@0.5) of ``records`` (validation_runs.run_once's with mirror runs) fused as parq-run
-    fuses them with ray fusion and these settings, with or without the mirror runs."""
+    """(F1@0.25, F1@0.5) of ``records`` (validation_runs.run_once's with mirror runs) fused as
+    parq-run fuses them with ray fusion and these settings, with or without the mirror runs."""
     if not mirror:
         records = [([plain for plain, _ in snippets], truth, up)
                    for snippets, truth, up in records]
-    m = postprocess_search.score(records, threshold, region, classes, "ray", support, ratio, mirror)
+    m = search.score(records, threshold, region, classes, "ray", support, ratio, mirror)
     return round(m["0.25"]["f1"], 4), round(m["0.5"]["f1"], 4)
 
 

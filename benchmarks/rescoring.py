@@ -7,8 +7,9 @@ but scores F1 0.49.  The card keeps a fused box when enough runs support it and 
 detection scores above a threshold.  This script asks whether the statistics of each fused box's
 cluster of detections tell the right boxes from the wrong ones better than that:
 
-1. Runs the model once on the validation and the held-out scenes (``parq_train.validation_runs.run_once``,
-   the card's run setting, mirror runs as the card says; every snippet box kept).
+1. Runs the model once on the validation and the held-out scenes
+   (``parq_train.validation_runs.run_once``, the card's run setting, mirror runs as the card
+   says; every snippet box kept).
 2. For each pre-fusion score threshold in --thresholds: fuses each scene (ray fusion, the card's
    ratio, no region, support 1), describes every cluster by :func:`features`, and labels it
    right when its fused box overlaps a ground-truth box of its class at IoU >= 0.25.
@@ -39,7 +40,7 @@ import spread
 import tradeoff
 from parq_runtime import Detector, evaluation
 from parq_runtime.iou import iou_matrix
-from parq_train import postprocess_search, validation_runs
+from parq_train import postprocess_search as search, validation_runs
 
 LABEL_IOU = 0.25
 EVERYWHERE = (-np.inf, np.inf, -np.inf, np.inf)   # a region that keeps every box
@@ -54,7 +55,7 @@ FEATURES = ("log(1 + support)", "log(1 + members)", "log(1 + snippets)", "max sc
 def fuse(records: list, threshold: float, ray_ratio: float, mirror: bool) -> list:
     """Per scene: (SceneFusion of the snippet boxes scoring above ``threshold``, support 1,
     ray fusion, no region; truth; up; snippets)."""
-    fused = postprocess_search.fuse_records(records, threshold, EVERYWHERE, "ray", ray_ratio, mirror)
+    fused = search.fuse_records(records, threshold, EVERYWHERE, "ray", ray_ratio, mirror)
     return [(*scene, len(snippets)) for scene, (snippets, _, _) in zip(fused, records)]
 
 
@@ -150,8 +151,8 @@ def f1s(pairs: list, classes) -> tuple:
 def card_pairs(records: list, card, mirror: bool) -> list:
     """The card's own rule on the same detections: its threshold, region, ratio, support and
     scene NMS."""
-    fused = postprocess_search.fuse_records(records, card.score_threshold, card.eval_region, card.fusion,
-                              card.ray_ratio, mirror, card.scene_nms)
+    fused = search.fuse_records(records, card.score_threshold, card.eval_region, card.fusion,
+                                card.ray_ratio, mirror, card.scene_nms)
     return [(fusion.boxes_with_support(card.min_support), truth, up)
             for fusion, truth, up in fused]
 
@@ -210,8 +211,8 @@ def main() -> int:
     mirror = card.run_mirror
     runs = 2 if mirror else 1
     start = time.perf_counter()
-    validation = validation_runs.run_once(detector, validation_runs.validation_folders(args.val, args.val_scenes), iters,
-                               queries, mirror=mirror)
+    folders = validation_runs.validation_folders(args.val, args.val_scenes)
+    validation = validation_runs.run_once(detector, folders, iters, queries, mirror=mirror)
     scenes, _ = tradeoff.scenes_from_arguments(args)
     held_out = validation_runs.run_once(detector, scenes, iters, queries, mirror=mirror)
     collect_minutes = (time.perf_counter() - start) / 60

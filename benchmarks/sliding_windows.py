@@ -39,10 +39,10 @@ def _share(records, classes):
 
 
 def _score(candidate) -> dict:
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     threshold, support, region, ratio = candidate
-    return postprocess_search.candidate(_records, _classes, threshold, region, "ray", support, ratio)
+    return search.candidate(_records, _classes, threshold, region, "ray", support, ratio)
 
 
 def grid(records, classes, candidates, jobs: int) -> list:
@@ -63,7 +63,7 @@ def main() -> None:
     args = p.parse_args()
 
     from parq_runtime import Detector
-    from parq_train import postprocess_search, validation_runs
+    from parq_train import postprocess_search as search, validation_runs
 
     det = Detector(args.model)
     post = det.card.raw["postprocess"]
@@ -80,9 +80,9 @@ def main() -> None:
         held_records = validation_runs.run_once(det, held, args.iters, args.queries, stride)
         seconds = time.perf_counter() - start
         table = grid(val_records, det.classes, candidates, args.jobs)
-        best = postprocess_search.best_of(table)
-        m = postprocess_search.score(held_records, best["score_threshold"], best["eval_region"], det.classes,
-                       "ray", best["min_support"], best["ray_ratio"])
+        best = search.best_of(table)
+        m = search.score(held_records, best["score_threshold"], best["eval_region"], det.classes,
+                         "ray", best["min_support"], best["ray_ratio"])
         row = {"stride": stride,
                "snippets": {"val": sum(len(r[0]) for r in val_records),
                             "held_out": sum(len(r[0]) for r in held_records)},

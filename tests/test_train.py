@@ -18,7 +18,8 @@ from conftest import tiny_config
 
 def _chair(x, score, size=(0.5, 0.8, 0.5)):
     """(a chair Box at (x, 0, 1) of ``size``, axis-aligned, with ``score``; its center): one
-    snippet detection as parq_train.tune's records hold it, the local frame the world's."""
+    snippet detection as parq_train.validation_runs' records hold it, the local frame the
+    world's."""
     from parq_runtime.boxes import Box
     from parq_runtime.geometry import box_corners
 
@@ -121,7 +122,7 @@ def test_tune_picks_the_threshold_and_region_that_separate_true_from_false_boxes
     Only threshold >= 0.4 with a region that excludes z = 4 m scores F1 = 1."""
     from parq_runtime.boxes import Box
     from parq_runtime.geometry import box_corners
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     def box(center, score, label=0):
         c, s, R = np.asarray(center, float), np.array([0.5, 0.8, 0.5]), np.eye(3)
@@ -132,8 +133,8 @@ def test_tune_picks_the_threshold_and_region_that_separate_true_from_false_boxes
                (box([0.0, 0.0, 4.0], 0.95), np.array([0.0, 0.0, 4.0])),
                (box([1.0, 0.0, 1.0], 0.4), np.array([1.0, 0.0, 1.0]))]
     records = [([snippet], truth, (0.0, 0.0, 1.0))]
-    best, table = postprocess_search.select(records, ["chair"], thresholds=(0.3, 0.5, 0.8),
-                              regions=postprocess_search.REGIONS)
+    best, table = search.select(records, ["chair"], thresholds=(0.3, 0.5, 0.8),
+                                regions=search.REGIONS)
     assert best["score_threshold"] == 0.5 and best["eval_region"][3] < 4.0
     # one snippet: support 2 or 3 reports nothing; equal F1s go to the authors' fusion
     assert (best["fusion"], best["min_support"]) == ("best", 1)
@@ -148,18 +149,18 @@ def test_tune_criterion_keeps_iou_50_above_its_floor_then_maximises_iou_25():
     """The sum picks the row with the best F1@0.25 + F1@0.5; with a floor at IoU 0.5 the best
     F1@0.25 among the rows at or above the floor wins, whatever the sum says; with no row at
     or above the floor, the sum decides.  Equal keys keep the first row (the authors')."""
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     rows = [{"name": "precise", "f1@0.25": 0.58, "f1@0.5": 0.41},
             {"name": "reaching", "f1@0.25": 0.61, "f1@0.5": 0.36},
             {"name": "loose", "f1@0.25": 0.63, "f1@0.5": 0.29},
             {"name": "reaching twin", "f1@0.25": 0.61, "f1@0.5": 0.36}]
-    assert postprocess_search.best_of(rows)["name"] == "precise"                       # 0.99 > 0.97 > 0.92
-    assert postprocess_search.best_of(rows, postprocess_search.Criterion(0.35))["name"] == "reaching"
-    assert postprocess_search.best_of(rows, postprocess_search.Criterion(0.25))["name"] == "loose"
-    assert postprocess_search.best_of(rows, postprocess_search.Criterion(0.5))["name"] == "precise"  # none clear: the sum
-    assert postprocess_search.Criterion(0.35).describe() == "max F1@0.25 with F1@0.5 >= 0.35"
-    assert postprocess_search.SUM.describe() == "max F1@0.25 + F1@0.5"
+    assert search.best_of(rows)["name"] == "precise"                     # 0.99 > 0.97 > 0.92
+    assert search.best_of(rows, search.Criterion(0.35))["name"] == "reaching"
+    assert search.best_of(rows, search.Criterion(0.25))["name"] == "loose"
+    assert search.best_of(rows, search.Criterion(0.5))["name"] == "precise"  # none clear: the sum
+    assert search.Criterion(0.35).describe() == "max F1@0.25 with F1@0.5 >= 0.35"
+    assert search.SUM.describe() == "max F1@0.25 + F1@0.5"
 
 
 def test_tune_turns_the_floor_on_when_it_helps_and_knows_which_classes_stand():
@@ -170,7 +171,7 @@ def test_tune_turns_the_floor_on_when_it_helps_and_knows_which_classes_stand():
     display standing on a table is not a floor class."""
     from parq_runtime.boxes import Box
     from parq_runtime.geometry import box_corners
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     camera = np.array([0.0, 0.0, 1.5])
     R = np.stack([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]], -1)       # object y (up) = world z
@@ -185,17 +186,17 @@ def test_tune_turns_the_floor_on_when_it_helps_and_knows_which_classes_stand():
     seen = box(truth_center + 0.4 * ray)
     records = [([[(seen, seen.center)], [(seen, seen.center)]], [box(truth_center, score=1.0)],
                 (0.0, 0.0, 1.0))]
-    best, _ = postprocess_search.select(records, ["chair"], thresholds=(0.5,), regions=postprocess_search.REGIONS[-1:],
-                          fusions=(("ray", 1, 30.0),))
+    best, _ = search.select(records, ["chair"], thresholds=(0.5,), regions=search.REGIONS[-1:],
+                            fusions=(("ray", 1, 30.0),))
     assert best["f1@0.25"] == 0.0 and best["floor_classes"] == []
-    chosen, rows = postprocess_search.select_floor(records, ["chair"], best, lambda n, guess: [(0.0, 0.1)])
+    chosen, rows = search.select_floor(records, ["chair"], best, lambda n, guess: [(0.0, 0.1)])
     assert (chosen["floor_classes"], chosen["f1@0.25"]) == (["chair"], 1.0)
     assert rows[0]["floor_classes"] == [] and rows[0]["f1@0.25"] == 0.0
-    chosen, _ = postprocess_search.select_floor(records, ["chair"], best, lambda n, guess: [(0.5, 0.1)])
+    chosen, _ = search.select_floor(records, ["chair"], best, lambda n, guess: [(0.5, 0.1)])
     assert chosen["floor_classes"] == [] and chosen["f1@0.25"] == 0.0
     on_table = [box([1.0, 1.0, 0.95], "display", size=(0.5, 0.5, 0.1)), box([1.0, 1.0, 0.4])]
-    assert postprocess_search.standing_classes([([], on_table, (0.0, 0.0, 1.0))] + records,
-                                 ["chair", "display"]) == ["chair"]
+    assert search.standing_classes([([], on_table, (0.0, 0.0, 1.0))] + records,
+                                   ["chair", "display"]) == ["chair"]
 
 
 def test_tune_last_pass_moves_threshold_and_support_together_and_keeps_best_on_ties():
@@ -203,45 +204,45 @@ def test_tune_last_pass_moves_threshold_and_support_together_and_keeps_best_on_t
     one: at support 2 only A is reported (F1 2/3); support 1 reports B too, and above 0.55
     nothing false (F1 1), so the last pass picks support 1 at the first threshold that
     drops the false box.  With chair A alone every row ties the given choice, which stays."""
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     box = _chair
     up, a, b, false = (0.0, 0.0, 1.0), box(0.0, 0.9), box(3.0, 0.9), box(6.0, 0.55)
     records = [([[a, b], [a], [false]], [a[0], b[0]], up)]
-    best, _ = postprocess_search.select(records, ["chair"], thresholds=(0.5,), regions=postprocess_search.REGIONS[-1:],
-                          fusions=(("ray", 2, 30.0),))
+    best, _ = search.select(records, ["chair"], thresholds=(0.5,), regions=search.REGIONS[-1:],
+                            fusions=(("ray", 2, 30.0),))
     assert (best["min_support"], best["f1@0.25"]) == (2, 0.6667)
-    chosen, rows = postprocess_search.select_keep(records, ["chair"], best, sweep=None)
-    assert len(rows) == len(postprocess_search.THRESHOLDS) * 2                      # supports 1 and 2
+    chosen, rows = search.select_keep(records, ["chair"], best, sweep=None)
+    assert len(rows) == len(search.THRESHOLDS) * 2                    # supports 1 and 2
     assert (chosen["score_threshold"], chosen["min_support"], chosen["f1@0.25"]) == \
         (0.55, 1, 1.0)
     assert chosen["fusion"] == "ray" and chosen["ray_ratio"] == 30.0
     alone = [([[a], [a]], [a[0]], up)]
-    best, _ = postprocess_search.select(alone, ["chair"], thresholds=(0.5,), regions=postprocess_search.REGIONS[-1:],
-                          fusions=(("ray", 2, 30.0),))
-    assert postprocess_search.select_keep(alone, ["chair"], best, sweep=None)[0] is best
+    best, _ = search.select(alone, ["chair"], thresholds=(0.5,), regions=search.REGIONS[-1:],
+                            fusions=(("ray", 2, 30.0),))
+    assert search.select_keep(alone, ["chair"], best, sweep=None)[0] is best
 
 
 def test_tune_chooses_scene_nms_after_the_grid_and_off_on_ties():
     """Two detections of each of two snippets on one chair grow two scene boxes: the grid's
     best keeps both (F1 2/3); scene NMS at the first IoU they exceed reports one (F1 1);
     with nothing to remove, off (the first choice) wins the tie."""
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     box = _chair
     truth = [box(0.0, 1.0)[0]]
     up = (0.0, 0.0, 1.0)
     pair = [box(0.0, 0.9), box(0.2, 0.8)]              # their IoU: 0.3 / 0.7 = 0.43
     records = [([pair, [], pair], truth, up)]           # seen twice: support 2 keeps both
-    best, rows = postprocess_search.select(records, ["chair"], thresholds=(0.5,), regions=postprocess_search.REGIONS[-1:])
+    best, rows = search.select(records, ["chair"], thresholds=(0.5,), regions=search.REGIONS[-1:])
     assert best["f1@0.25"] == 0.6667 and best["scene_nms"] is None
-    chosen, rows = postprocess_search.select_scene_nms(records, ["chair"], best)
-    assert [r["scene_nms"] for r in rows] == list(postprocess_search.SCENE_NMS)
+    chosen, rows = search.select_scene_nms(records, ["chair"], best)
+    assert [r["scene_nms"] for r in rows] == list(search.SCENE_NMS)
     assert (chosen["scene_nms"], chosen["f1@0.25"]) == (0.0, 1.0)
     assert next(r for r in rows if r["scene_nms"] == 0.3)["f1@0.25"] == 1.0
     alone = [([[box(0.0, 0.9)]], truth, up)]
-    best, _ = postprocess_search.select(alone, ["chair"], thresholds=(0.5,), regions=postprocess_search.REGIONS[-1:])
-    assert postprocess_search.select_scene_nms(alone, ["chair"], best)[0]["scene_nms"] is None
+    best, _ = search.select(alone, ["chair"], thresholds=(0.5,), regions=search.REGIONS[-1:])
+    assert search.select_scene_nms(alone, ["chair"], best)[0]["scene_nms"] is None
 
 
 def test_tune_chooses_the_label_vote_when_it_scores_and_the_authors_rule_on_ties():
@@ -251,7 +252,7 @@ def test_tune_chooses_the_label_vote_when_it_scores_and_the_authors_rule_on_ties
     wins the tie; the chosen row keeps the rest of ``best`` as it was."""
     from parq_runtime.boxes import Box
     from parq_runtime.geometry import box_corners
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     def box(name, score):
         c, s, R = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.8, 0.6]), np.eye(3)
@@ -261,18 +262,18 @@ def test_tune_chooses_the_label_vote_when_it_scores_and_the_authors_rule_on_ties
     truth = [box("table", 1.0)[0]]
     up = (0.0, 0.0, 1.0)
     records = [([[box("table", 0.85)], [box("chair", 0.9)], [box("table", 0.85)]], truth, up)]
-    best = postprocess_search.candidate(records, ["chair", "table"], 0.5, postprocess_search.REGIONS[-1], "mean", 2, 10.0,
-                          scene_nms=0.1)
+    best = search.candidate(records, ["chair", "table"], 0.5, search.REGIONS[-1], "mean", 2, 10.0,
+                            scene_nms=0.1)
 
-    chosen, rows = postprocess_search.select_labels(records, ["chair", "table"], best, _no_floor)
+    chosen, rows = search.select_labels(records, ["chair", "table"], best, _no_floor)
     assert [(r["labels"], r["f1@0.25"]) for r in rows] == [("best", 0.0), ("vote", 1.0)]
     assert chosen["labels"] == "vote"
-    assert {k: chosen[k] for k in postprocess_search.CHOSEN if k != "labels"} == {
-        k: best[k] for k in postprocess_search.CHOSEN if k != "labels"}
+    assert {k: chosen[k] for k in search.CHOSEN if k != "labels"} == {
+        k: best[k] for k in search.CHOSEN if k != "labels"}
     agreeing = [([[box("table", 0.85)], [box("table", 0.9)]], truth, up)]
-    best = postprocess_search.candidate(agreeing, ["chair", "table"], 0.5, postprocess_search.REGIONS[-1], "mean", 2, 10.0,
-                          scene_nms=0.1)
-    chosen, rows = postprocess_search.select_labels(agreeing, ["chair", "table"], best, _no_floor)
+    best = search.candidate(agreeing, ["chair", "table"], 0.5, search.REGIONS[-1], "mean", 2, 10.0,
+                            scene_nms=0.1)
+    chosen, rows = search.select_labels(agreeing, ["chair", "table"], best, _no_floor)
     assert rows[0]["f1@0.25"] == rows[1]["f1@0.25"] == 1.0 and chosen["labels"] == "best"
 
 
@@ -281,7 +282,7 @@ def test_tune_lowers_the_matching_iou_when_it_joins_an_object_and_keeps_the_auth
     matching IoU (0.1) keeps two boxes of support 1 and reports nothing, F1 0; 0.05 joins them
     into one box on the chair, F1 1, and lower IoUs tie with it (the first wins).  With one
     snippet every IoU scores alike and the authors' stays; the rest of ``best`` is kept."""
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     def box(x, score):
         return _chair(x, score, size=(1.0, 1.0, 1.0))
@@ -289,17 +290,17 @@ def test_tune_lowers_the_matching_iou_when_it_joins_an_object_and_keeps_the_auth
     truth = [box(0.425, 1.0)[0]]
     up = (0.0, 0.0, 1.0)
     records = [([[box(0.0, 0.9)], [box(0.85, 0.9)]], truth, up)]
-    best = postprocess_search.candidate(records, ["chair"], 0.5, postprocess_search.REGIONS[-1], "mean", 2, 10.0)
+    best = search.candidate(records, ["chair"], 0.5, search.REGIONS[-1], "mean", 2, 10.0)
     assert (best["match_iou"], best["f1@0.25"]) == (0.1, 0.0)
-    chosen, rows = postprocess_search.select_match(records, ["chair"], best, _no_floor)
+    chosen, rows = search.select_match(records, ["chair"], best, _no_floor)
     assert [(r["match_iou"], r["f1@0.25"]) for r in rows] == [
         (0.1, 0.0), (0.05, 1.0), (0.02, 1.0), (0.01, 1.0)]
     assert chosen["match_iou"] == 0.05
-    assert {k: chosen[k] for k in postprocess_search.CHOSEN if k != "match_iou"} == {
-        k: best[k] for k in postprocess_search.CHOSEN if k != "match_iou"}
+    assert {k: chosen[k] for k in search.CHOSEN if k != "match_iou"} == {
+        k: best[k] for k in search.CHOSEN if k != "match_iou"}
     alone = [([[box(0.425, 0.9)]], truth, up)]
-    best = postprocess_search.candidate(alone, ["chair"], 0.5, postprocess_search.REGIONS[-1], "mean", 1, 10.0)
-    chosen, rows = postprocess_search.select_match(alone, ["chair"], best, _no_floor)
+    best = search.candidate(alone, ["chair"], 0.5, search.REGIONS[-1], "mean", 1, 10.0)
+    chosen, rows = search.select_match(alone, ["chair"], best, _no_floor)
     assert all(r["f1@0.25"] == 1.0 for r in rows) and chosen["match_iou"] == 0.1
 
 
@@ -310,22 +311,22 @@ def test_tune_adds_the_second_sampling_grid_when_its_runs_support_an_object():
     support 2 nothing is reported (F1 0); both grids at support 2 report the chair alone (F1
     1), so two grids win, at the lowest support that does.  Where the second grid's runs see
     nothing new, every row ties with one grid, which wins."""
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     box = _chair
     truth = [box(0.0, 1.0)[0]]
     up = (0.0, 0.0, 1.0)
     first = [([box(0.0, 0.9), box(1.5, 0.9)], False, 0.0), ([], True, 0.0)]
     second = [([box(0.02, 0.9)], False, 0.5), ([box(-0.02, 0.85)], True, 0.5)]
-    best = postprocess_search.row_of(0.5, postprocess_search.REGIONS[-1], "mean", 2, 10.0, {})
+    best = search.row_of(0.5, search.REGIONS[-1], "mean", 2, 10.0, {})
     best.update(match_iou=0.1)
-    (phases, support), rows = postprocess_search.select_phases([([first + second], truth, up)], ["chair"],
-                                                 best, _no_floor, mirror=True)
+    (phases, support), rows = search.select_phases([([first + second], truth, up)], ["chair"],
+                                                   best, _no_floor, mirror=True)
     assert (rows[0]["phases"], rows[0]["min_support"], rows[0]["f1@0.25"]) == (1, 2, 0.0)
     assert [(r["min_support"], r["f1@0.25"]) for r in rows[1:4]] == [
         (1, 0.6667), (2, 1.0), (3, 1.0)]
     assert (phases, support) == (2, 2)
-    (phases, support), rows = postprocess_search.select_phases(
+    (phases, support), rows = search.select_phases(
         [([first + [([], False, 0.5), ([], True, 0.5)]], truth, up)], ["chair"],
         dict(best, min_support=1), _no_floor, mirror=True)
     assert rows[0]["f1@0.25"] == 0.6667 and (phases, support) == (1, None)
@@ -338,7 +339,7 @@ def test_tune_with_mirror_runs_counts_both_runs_and_scores_alike_in_any_number_o
     scored by itself (one fusion serves every support)."""
     from parq_runtime.boxes import Box
     from parq_runtime.geometry import box_corners
-    from parq_train import postprocess_search
+    from parq_train import postprocess_search as search
 
     def box(center, score):
         c, s, R = np.asarray(center, float), np.array([0.5, 0.8, 0.5]), np.eye(3)
@@ -348,17 +349,17 @@ def test_tune_with_mirror_runs_counts_both_runs_and_scores_alike_in_any_number_o
     plain = [box([0.0, 0.0, 1.0], 0.9), box([1.2, 0.0, 1.5], 0.9)]
     mirrored = [box([0.02, 0.0, 1.05], 0.85)]
     records = [([(plain, mirrored)], truth, (0.0, 0.0, 1.0))]
-    grid = dict(thresholds=(0.3, 0.95), regions=postprocess_search.REGIONS[-1:],
-                fusions=postprocess_search.MIRROR_FUSIONS, mirror=True)
-    best, table = postprocess_search.select(records, ["chair"], **grid)
+    grid = dict(thresholds=(0.3, 0.95), regions=search.REGIONS[-1:],
+                fusions=search.MIRROR_FUSIONS, mirror=True)
+    best, table = search.select(records, ["chair"], **grid)
     assert (best["min_support"], best["f1@0.25"], best["score_threshold"]) == (2, 1.0, 0.3)
     ones = next(r for r in table if r["min_support"] == 1 and r["fusion"] == "best")
     assert ones["f1@0.25"] == 0.6667             # the false box is reported: 2 / 3
     assert all(r["f1@0.25"] == 0.0 for r in table if r["min_support"] > 2)
-    assert postprocess_search.select(records, ["chair"], jobs=2, **grid) == (best, table)
-    assert table == [postprocess_search.candidate(records, ["chair"], r["score_threshold"],
-                                    r["eval_region"], r["fusion"], r["min_support"],
-                                    r["ray_ratio"], mirror=True) for r in table]
+    assert search.select(records, ["chair"], jobs=2, **grid) == (best, table)
+    assert table == [search.candidate(records, ["chair"], r["score_threshold"],
+                                      r["eval_region"], r["fusion"], r["min_support"],
+                                      r["ray_ratio"], mirror=True) for r in table]
     assert {(r["fusion"], r["min_support"]) for r in table} >= {("ray", 4), ("best", 1)}
 
 
@@ -714,7 +715,7 @@ def test_tune_a_model_folder_writes_a_new_folder_with_the_choice(tiny_model, tmp
     kept; an existing output is refused before the detector runs."""
     import parq_synth
     from parq_runtime import model_card
-    from parq_train import postprocess_search, tune
+    from parq_train import postprocess_search as search, tune
 
     parq_synth.generate(tmp_path / "val", 2, 2000, frames=8, size=(64, 48))
     out = tmp_path / "tuned"
@@ -722,7 +723,7 @@ def test_tune_a_model_folder_writes_a_new_folder_with_the_choice(tiny_model, tmp
                       "--queries", "8"]) == 0
     card = model_card.load(out)
     chosen = card.raw["extra"]["postprocess_tuning"]["chosen"]
-    for key in postprocess_search.CHOSEN:
+    for key in search.CHOSEN:
         assert card.raw["postprocess"][key] == chosen[key]
     assert card.raw["run"] == {"iters": 2, "queries": 8, "mirror": False, "phases": 1}
     assert card.raw["query_order"] == json.loads((tiny_model / "model.json").read_text())[
