@@ -5,16 +5,16 @@ choice, each with everything before it in place.
 
 Each validation snippet is run once with no threshold and no region
 (parq_train.validation_runs); every candidate is then applied to those detections exactly as
-the runtime applies it (after NMS), and the scene is fused and scored.  So the grid costs one detector pass, not one per candidate.  Candidates
-that differ only in the minimum support share one fusion (the support only filters its
-boxes), and ``jobs`` processes (tune's ``--jobs``, one per core) share the rest: on 6 validation scenes with
-mirror runs, 19.6 s for 120 candidates one by one, 8.3 s sharing fusions, 4.3 s in 2
-processes (2-core EPYC), with the same table.
+the runtime applies it (after NMS), and the scene is fused and scored. So the grid costs one
+detector pass, not one per candidate. Candidates that differ only in the minimum support share
+one fusion (the support only filters its boxes), and ``jobs`` processes (tune's ``--jobs``, one
+per core) share the rest: on 6 validation scenes with mirror runs, 19.6 s for 120 candidates
+one by one, 8.3 s sharing fusions, 4.3 s in 2 processes (2-core EPYC), with the same table.
 
-``mirror`` (tune's ``--mirror``) chooses for runs that add each snippet's mirror image (parq-run --mirror,
-parq_runtime.mirror): the detector pass makes both runs, the grid's supports count runs (1-4,
-twice the plain grid's), and the card records mirror runs in its run setting, so parq-run
-makes them unless told ``--no-mirror``.
+``mirror`` (tune's ``--mirror``) chooses for runs that add each snippet's mirror image
+(parq-run --mirror, parq_runtime.mirror): the detector pass makes both runs, the grid's
+supports count runs (1-4, twice the plain grid's), and the card records mirror runs in its run
+setting, so parq-run makes them unless told ``--no-mirror``.
 
 Then the scene NMS (parq_runtime.fusion: of two scene boxes of one class overlapping by more
 than an IoU, only the better-scoring is reported) is chosen for the best candidate: off, or
