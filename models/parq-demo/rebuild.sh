@@ -6,7 +6,7 @@
 # steps and a weaker model: docs/demo-experiments.md, "held to 90 minutes"), into
 # work/parq-demo; compare it with models/parq-demo with benchmarks/tradeoff.py --model.
 # Needs: pip install -e ".[export,test]".  Seeds: training scenes 1000, validation 2000 and
-# 2001, held-out (reported numbers) 3000, sample scene 4000; training seed 0.
+# 2001, held-out (reported numbers) 3000, 5000 and 6000, sample scene 4000; training seed 0.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 parq-synth data/val --scenes 40 --seed 2000 --frames 60 --width 160 --height 120 --jobs 2 --quiet
