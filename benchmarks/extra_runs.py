@@ -138,10 +138,9 @@ def fuse(records: list, kinds: list, card, threshold: float) -> list:
                              floor_weight=card.floor_weight)
         for n, runs in enumerate(snippets):
             for j, key in enumerate((kind, m) for kind in kinds for m in (False, True)):
-                kept = [b for b, c in runs[key] if b.score > threshold
-                        and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]]
                 # one run id per (snippet, run): support counts runs, as with mirror runs
-                fusion.add(kept, n * 2 * len(kinds) + j)
+                fusion.add(search.kept_boxes(runs[key], threshold, region),
+                           n * 2 * len(kinds) + j)
         fused.append((fusion, truth, up))
     return fused
 

@@ -176,9 +176,7 @@ def fused_pairs(scenes: list, card, Variant, knobs: dict, threshold: float, matc
         for key, value in knobs.items():
             setattr(fusion, key, value)
         for snippet, mirrored, boxes in runs:
-            kept = [b for b, c in boxes if b.score > threshold
-                    and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]]
-            fusion.add(kept, snippet, mirrored)
+            fusion.add(search.kept_boxes(boxes, threshold, region), snippet, mirrored)
         fused.append((fusion, truth, up))
     return search.floor_pairs(fused, card.min_support, card.floor_classes, card.floor_weight,
                               sweep)

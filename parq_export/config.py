@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 from parq_runtime import fusion as scene_fusion  # not `fusion`: a field below has that name
 from parq_runtime import preprocess
-from parq_runtime.model_card import DEFAULT_RUN
+from parq_runtime.model_card import DEFAULT_RUN, PHASE_COUNTS
 
 # Class names of the authors' ScanNet (Scan2CAD) release, in label order; label 9 is no-object.
 SCANNET_CLASSES = ("chair", "table", "cabinet", "trash bin", "bookshelf", "display", "sofa",
@@ -149,7 +149,7 @@ class PARQConfig:
                 problems.append(f"{name} {value!r} must be an integer >= 1")
         if not isinstance(self.run_mirror, bool):
             problems.append(f"run_mirror {self.run_mirror!r} must be True or False")
-        if isinstance(self.run_phases, bool) or self.run_phases not in (1, 2):
+        if isinstance(self.run_phases, bool) or self.run_phases not in PHASE_COUNTS:
             problems.append(f"run_phases {self.run_phases!r} must be 1 or 2")
         if self.phase_support is not None and (
                 isinstance(self.phase_support, bool) or not isinstance(self.phase_support, int)

@@ -13,6 +13,7 @@ from . import floor, keyframes, mirror, preprocess
 from .detector import FeatureCache
 from .errors import ParqError
 from .fusion import FLOOR_OFF, SCENE_NMS_OFF, SceneFusion
+from .model_card import PHASE_COUNTS
 from .readers import Capture
 
 
@@ -128,7 +129,7 @@ def sampling_phases(settings: RunSettings, card, capture: Capture) -> int:
     card's) count, 1 where the first frame is not at least twice the network size each way
     (preprocess.grids)."""
     wanted = card.run_phases if settings.phases is None else settings.phases
-    if wanted not in (1, 2):
+    if wanted not in PHASE_COUNTS:
         raise ParqError(f"sampling phases must be 1 or 2, got {wanted!r}")
     if wanted == 1 or not capture.frames:
         return 1

@@ -108,7 +108,6 @@ class Criterion:
 SUM = Criterion()
 
 
-
 def score(records: list, threshold: float, region, classes, fusion: str = AUTHORS_MODE,
           min_support: int = AUTHORS_MIN_SUPPORT, ray_ratio: float = RAY_RATIO,
           mirror: bool = False, scene_nms: float | None = None) -> dict:
@@ -118,7 +117,6 @@ def score(records: list, threshold: float, region, classes, fusion: str = AUTHOR
     --mirror fuses them."""
     return score_supports(records, threshold, region, classes, fusion, (min_support,),
                           ray_ratio, mirror, scene_nms)[min_support]
-
 
 
 def score_supports(records: list, threshold: float, region, classes, fusion: str,
@@ -131,6 +129,13 @@ def score_supports(records: list, threshold: float, region, classes, fusion: str
                                     for f, truth, up in fused], classes) for s in supports}
 
 
+def kept_boxes(boxes: list, threshold: float, region) -> list:
+    """The boxes of ``boxes`` ([(box, its local center)]) that a snippet keeps: scoring above
+    ``threshold``, local center in ``region`` (xmin, xmax, zmin, zmax), as parq-run keeps
+    them."""
+    return [b for b, c in boxes if b.score > threshold
+            and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]]
+
 
 def fuse_records(records: list, threshold: float, region, fusion: str,
                  ray_ratio: float = RAY_RATIO, mirror: bool = False,
@@ -139,23 +144,18 @@ def fuse_records(records: list, threshold: float, region, fusion: str,
     """Per scene of ``records`` (run_once's): (its SceneFusion, support 1, of the snippet boxes
     scoring above ``threshold`` whose local centers lie in ``region``, truth, up); with
     ``mirror`` each snippet's mirror-image run is fused as parq-run --mirror fuses it."""
-    def kept(boxes):
-        return [b for b, c in boxes if b.score > threshold
-                and region[0] < c[0] < region[1] and region[2] < c[2] < region[3]]
-
     fused = []
     for snippets, truth, up in records:
         scene_boxes = SceneFusion(match_iou, up=up, mode=fusion, ray_ratio=ray_ratio,
                                   scene_nms=scene_nms, labels=labels)
         for n, boxes in enumerate(snippets):
             if mirror:
-                scene_boxes.add(kept(boxes[0]), n)
-                scene_boxes.add(kept(boxes[1]), n, mirrored=True)
+                scene_boxes.add(kept_boxes(boxes[0], threshold, region), n)
+                scene_boxes.add(kept_boxes(boxes[1], threshold, region), n, mirrored=True)
             else:
-                scene_boxes.add(kept(boxes), n)
+                scene_boxes.add(kept_boxes(boxes, threshold, region), n)
         fused.append((scene_boxes, truth, up))
     return fused
-
 
 
 def select(records: list, classes, thresholds=THRESHOLDS, regions=REGIONS,
@@ -179,14 +179,12 @@ def select(records: list, classes, thresholds=THRESHOLDS, regions=REGIONS,
     return best_of(table, criterion), table
 
 
-
 def _key(fusion: str, min_support: int, ray_ratio: float, region, threshold) -> tuple:
     """A candidate's settings, hashable: where :func:`select` files its table row."""
     return fusion, min_support, ray_ratio, tuple(region), float(threshold)
 
 
 _SHARED = {}   # what _candidates reads in a worker process (inherited by fork, not pickled)
-
 
 
 def _map(function, tasks, records, classes, mirror, jobs) -> list:
@@ -204,7 +202,6 @@ def _map(function, tasks, records, classes, mirror, jobs) -> list:
         _SHARED.clear()
 
 
-
 def _candidates(task) -> list:
     """The table rows of one (threshold, region, mode, supports, ratio) task."""
     threshold, region, mode, supports, ratio = task
@@ -213,14 +210,12 @@ def _candidates(task) -> list:
     return [row_of(threshold, region, mode, s, ratio, metrics[s]) for s in supports]
 
 
-
 def candidate(records: list, classes, threshold: float, region, fusion: str, min_support: int,
               ray_ratio: float, mirror: bool = False, scene_nms: float | None = None) -> dict:
     """One row of :func:`select`'s table: the settings and the F1s they give on ``records``."""
     m = score(records, threshold, region, classes, fusion, min_support, ray_ratio, mirror,
               scene_nms)
     return row_of(threshold, region, fusion, min_support, ray_ratio, m, scene_nms)
-
 
 
 def row_of(threshold: float, region, fusion: str, min_support: int, ray_ratio: float,
@@ -234,7 +229,6 @@ def row_of(threshold: float, region, fusion: str, min_support: int, ray_ratio: f
             **{f"f1@{k}": round(metrics[k]["f1"], 4) for k in metrics}}
 
 
-
 def select_scene_nms(records: list, classes, best: dict, mirror: bool = False,
                      choices=SCENE_NMS, criterion: Criterion = SUM) -> tuple:
     """(the best of ``best`` with each scene NMS of ``choices``, their rows), by
@@ -243,7 +237,6 @@ def select_scene_nms(records: list, classes, best: dict, mirror: bool = False,
     rows = [candidate(records, classes, *(best[k] for k in keys), mirror, nms)
             for nms in choices]
     return best_of(rows, criterion), rows
-
 
 
 def standing_classes(records: list, classes) -> list:
@@ -262,7 +255,6 @@ def standing_classes(records: list, classes) -> list:
             standing[b.class_name] = standing.get(b.class_name, 0) + (
                 bottom - lowest <= STANDING_TOLERANCE)
     return [c for c in classes if seen.get(c) and standing[c] >= STANDING_SHARE * seen[c]]
-
 
 
 def select_floor(records: list, classes, best: dict, sweep, mirror: bool = False,
@@ -298,7 +290,6 @@ def select_floor(records: list, classes, best: dict, sweep, mirror: bool = False
     return best_of([rows[0], current], criterion), rows
 
 
-
 def floor_pairs(fused: list, min_support: int, floor_classes, weight: float, sweep) -> list:
     """(scene boxes, truth, up) per scene of ``fused`` (fuse_records') at ``min_support``,
     the boxes of ``floor_classes`` pulled at ``weight`` to the floor parq-run would find
@@ -314,7 +305,6 @@ def floor_pairs(fused: list, min_support: int, floor_classes, weight: float, swe
     return pairs
 
 
-
 def select_labels(records: list, classes, best: dict, sweep, mirror: bool = False,
                   criterion: Criterion = SUM) -> tuple:
     """(``best`` with the label rule chosen by ``criterion``, the rows tried): ``best``
@@ -323,7 +313,6 @@ def select_labels(records: list, classes, best: dict, sweep, mirror: bool = Fals
     rows = [best] + [scored(records, classes, dict(best, labels=labels), sweep, mirror)
                      for labels in LABEL_RULES if labels != best["labels"]]
     return best_of(rows, criterion), rows
-
 
 
 def scored(records: list, classes, settings: dict, sweep, mirror: bool = False) -> dict:
@@ -337,7 +326,6 @@ def scored(records: list, classes, settings: dict, sweep, mirror: bool = False) 
     return scored_row(settings, settings["min_support"], evaluation.evaluate(pairs, classes))
 
 
-
 def select_match(records: list, classes, best: dict, sweep, mirror: bool = False,
                  criterion: Criterion = SUM) -> tuple:
     """(``best`` with the fusion's matching IoU chosen by ``criterion``, the rows tried):
@@ -348,7 +336,6 @@ def select_match(records: list, classes, best: dict, sweep, mirror: bool = False
     rows = [best] + [scored(records, classes, dict(best, match_iou=match_iou), sweep, mirror)
                      for match_iou in MATCH_IOUS if match_iou != best["match_iou"]]
     return best_of(rows, criterion), rows
-
 
 
 def select_keep(records: list, classes, best: dict, sweep, mirror: bool = False,
@@ -376,7 +363,6 @@ def select_keep(records: list, classes, best: dict, sweep, mirror: bool = False,
     return best_of([best] + rows, criterion), rows
 
 
-
 def fuse_looks(records: list, settings: dict, phases: int) -> list:
     """Per scene of ``records`` (run_looks'): (its SceneFusion, support 1, of the runs at the
     first ``phases`` sampling grids with ``settings``' threshold, region and fusion, truth,
@@ -390,12 +376,9 @@ def fuse_looks(records: list, settings: dict, phases: int) -> list:
         for n, looks in enumerate(snippets):
             for boxes, mirrored, phase in looks:
                 if phase in PHASES[:phases]:
-                    scene_boxes.add([b for b, c in boxes if b.score > threshold
-                                     and region[0] < c[0] < region[1]
-                                     and region[2] < c[2] < region[3]], n, mirrored, phase)
+                    scene_boxes.add(kept_boxes(boxes, threshold, region), n, mirrored, phase)
         fused.append((scene_boxes, truth, up))
     return fused
-
 
 
 def select_phases(records: list, classes, best: dict, sweep, mirror: bool = False,
@@ -417,7 +400,6 @@ def select_phases(records: list, classes, best: dict, sweep, mirror: bool = Fals
     return ((2, chosen["min_support"]) if chosen["phases"] == 2 else (1, None)), rows
 
 
-
 def scored_row(settings: dict, min_support: int, metrics: dict) -> dict:
     """row_of ``settings`` (a row's CHOSEN keys) at ``min_support`` with ``metrics``."""
     return row_of(settings["score_threshold"], settings["eval_region"], settings["fusion"],
@@ -426,12 +408,10 @@ def scored_row(settings: dict, min_support: int, metrics: dict) -> dict:
                   settings["match_iou"])
 
 
-
 def best_of(table: list, criterion: Criterion = SUM) -> dict:
     """The best row of ``table`` by ``criterion``; max() keeps the first of equals, so in
     :func:`select`'s table the authors' fusion wins ties."""
     return max(table, key=criterion.key)
-
 
 
 def choose(records: list, classes, sweep, mirror: bool = False, jobs: int = 1,

@@ -205,6 +205,5 @@ def run_checkpoint(args, folders) -> int:
     return 0
 
 
-
 if __name__ == "__main__":
     sys.exit(main())
