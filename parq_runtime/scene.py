@@ -131,7 +131,13 @@ def sampling_phases(settings: RunSettings, card, capture: Capture) -> int:
     wanted = card.run_phases if settings.phases is None else settings.phases
     if wanted not in PHASE_COUNTS:
         raise ParqError(f"sampling phases must be 1 or 2, got {wanted!r}")
-    if wanted == 1 or not capture.frames:
+    return 1 if wanted == 1 else capture_grids(card, capture)
+
+
+def capture_grids(card, capture: Capture) -> int:
+    """The point-sampling grids the capture's frames hold for ``card``'s network
+    (preprocess.grids; the first frame stands for the capture, 1 if it has none)."""
+    if not capture.frames:
         return 1
     height, width = capture.frames[0].load_image().shape[:2]
     return preprocess.grids((width, height), card.image_size, card.image_filter)

@@ -269,9 +269,8 @@ def select_floor(records: list, classes, best: dict, sweep, mirror: bool = False
 
     def row(floor_classes, weight):
         pairs = floor_pairs(fused, best["min_support"], floor_classes, weight, sweep)
-        return row_of(best["score_threshold"], best["eval_region"], best["fusion"],
-                      best["min_support"], best["ray_ratio"], evaluation.evaluate(pairs, classes),
-                      best["scene_nms"], floor_classes, weight)
+        return scored_row({**best, "floor_classes": floor_classes, "floor_weight": weight},
+                          best["min_support"], evaluation.evaluate(pairs, classes))
 
     rows = [row((), FLOOR_WEIGHT)]
     chosen = standing_classes(records, classes)
@@ -356,10 +355,8 @@ def select_keep(records: list, classes, best: dict, sweep, mirror: bool = False,
         for support in supports:
             pairs = floor_pairs(fused, support, best["floor_classes"], best["floor_weight"],
                                 sweep)
-            rows.append(row_of(float(threshold), best["eval_region"], best["fusion"], support,
-                               best["ray_ratio"], evaluation.evaluate(pairs, classes),
-                               best["scene_nms"], best["floor_classes"], best["floor_weight"],
-                               best["labels"], best["match_iou"]))
+            rows.append(scored_row({**best, "score_threshold": float(threshold)}, support,
+                                   evaluation.evaluate(pairs, classes)))
     return best_of([best] + rows, criterion), rows
 
 

@@ -16,7 +16,7 @@ import pathlib
 
 import numpy as np
 
-from parq_runtime import evaluation, floor, geometry, preprocess, readers, scene
+from parq_runtime import evaluation, floor, geometry, readers, scene
 from parq_runtime.errors import ParqError
 from parq_runtime.iou import iou_matrix
 from parq_runtime.preprocess import PHASES
@@ -128,12 +128,11 @@ def floor_sweep(folders: list):
 
 def check_two_grids(folders: list, card) -> None:
     """ParqError unless every scene of ``folders`` has frames with two point-sampling grids
-    for ``card``'s network (preprocess.grids; its first frame stands for the scene)."""
+    for ``card``'s network (scene.capture_grids)."""
     for folder in folders:
-        height, width = readers.open_capture(folder).frames[0].load_image().shape[:2]
-        if preprocess.grids((width, height), card.image_size, card.image_filter) < 2:
+        if scene.capture_grids(card, readers.open_capture(folder)) < 2:
             w, h = card.image_size
-            raise ParqError(f"{folder}: its {width}x{height} frames have one point-sampling "
-                            f"grid for this {w}x{h} model ({card.image_filter!r} filter); "
-                            f"--phase-data needs frames at least twice its size each way")
+            raise ParqError(f"{folder}: its frames have one point-sampling grid for this "
+                            f"{w}x{h} model ({card.image_filter!r} filter); --phase-data "
+                            f"needs frames at least twice its size each way")
 
