@@ -143,19 +143,18 @@ def fuse_records(records: list, threshold: float, region, fusion: str,
                  match_iou: float = MATCH_IOU) -> list:
     """Per scene of ``records`` (run_once's): (its SceneFusion, support 1, of the snippet boxes
     scoring above ``threshold`` whose local centers lie in ``region``, truth, up); with
-    ``mirror`` each snippet's mirror-image run is fused as parq-run --mirror fuses it."""
-    fused = []
-    for snippets, truth, up in records:
-        scene_boxes = SceneFusion(match_iou, up=up, mode=fusion, ray_ratio=ray_ratio,
-                                  scene_nms=scene_nms, labels=labels)
-        for n, boxes in enumerate(snippets):
-            if mirror:
-                scene_boxes.add(kept_boxes(boxes[0], threshold, region), n)
-                scene_boxes.add(kept_boxes(boxes[1], threshold, region), n, mirrored=True)
-            else:
-                scene_boxes.add(kept_boxes(boxes, threshold, region), n)
-        fused.append((scene_boxes, truth, up))
-    return fused
+    ``mirror`` each snippet's mirror-image run is fused as parq-run --mirror fuses it
+    (:func:`fuse_looks` of the records as looks at the first sampling grid)."""
+    def looks(boxes):
+        if mirror:
+            return [(boxes[0], False, PHASES[0]), (boxes[1], True, PHASES[0])]
+        return [(boxes, False, PHASES[0])]
+
+    settings = {"score_threshold": threshold, "eval_region": region, "fusion": fusion,
+                "ray_ratio": ray_ratio, "scene_nms": scene_nms, "labels": labels,
+                "match_iou": match_iou}
+    return fuse_looks([([looks(boxes) for boxes in snippets], truth, up)
+                       for snippets, truth, up in records], settings, 1)
 
 
 def select(records: list, classes, thresholds=THRESHOLDS, regions=REGIONS,
@@ -362,8 +361,8 @@ def select_keep(records: list, classes, best: dict, sweep, mirror: bool = False,
 
 def fuse_looks(records: list, settings: dict, phases: int) -> list:
     """Per scene of ``records`` (run_looks'): (its SceneFusion, support 1, of the runs at the
-    first ``phases`` sampling grids with ``settings``' threshold, region and fusion, truth,
-    up)."""
+    first ``phases`` sampling grids with ``settings``' threshold, region, fusion, ray ratio,
+    scene NMS, label rule and matching IoU, truth, up)."""
     threshold, region = settings["score_threshold"], settings["eval_region"]
     fused = []
     for snippets, truth, up in records:
