@@ -267,9 +267,8 @@ def select_floor(records: list, classes, best: dict, sweep, mirror: bool = False
                          best["ray_ratio"], mirror, best["scene_nms"])
 
     def row(floor_classes, weight):
-        pairs = floor_pairs(fused, best["min_support"], floor_classes, weight, sweep)
-        return scored_row({**best, "floor_classes": floor_classes, "floor_weight": weight},
-                          best["min_support"], evaluation.evaluate(pairs, classes))
+        return floor_row(fused, {**best, "floor_classes": floor_classes, "floor_weight": weight},
+                         best["min_support"], classes, sweep)
 
     rows = [row((), FLOOR_WEIGHT)]
     chosen = standing_classes(records, classes)
@@ -319,9 +318,7 @@ def scored(records: list, classes, settings: dict, sweep, mirror: bool = False) 
     fused = fuse_records(records, settings["score_threshold"], settings["eval_region"],
                          settings["fusion"], settings["ray_ratio"], mirror,
                          settings["scene_nms"], settings["labels"], settings["match_iou"])
-    pairs = floor_pairs(fused, settings["min_support"], settings["floor_classes"],
-                        settings["floor_weight"], sweep)
-    return scored_row(settings, settings["min_support"], evaluation.evaluate(pairs, classes))
+    return floor_row(fused, settings, settings["min_support"], classes, sweep)
 
 
 def select_match(records: list, classes, best: dict, sweep, mirror: bool = False,
@@ -351,11 +348,8 @@ def select_keep(records: list, classes, best: dict, sweep, mirror: bool = False,
         fused = fuse_records(records, threshold, best["eval_region"], best["fusion"],
                              best["ray_ratio"], mirror, best["scene_nms"], best["labels"],
                              best["match_iou"])
-        for support in supports:
-            pairs = floor_pairs(fused, support, best["floor_classes"], best["floor_weight"],
-                                sweep)
-            rows.append(scored_row({**best, "score_threshold": float(threshold)}, support,
-                                   evaluation.evaluate(pairs, classes)))
+        rows += [floor_row(fused, {**best, "score_threshold": float(threshold)}, support,
+                           classes, sweep) for support in supports]
     return best_of([best] + rows, criterion), rows
 
 
@@ -385,15 +379,22 @@ def select_phases(records: list, classes, best: dict, sweep, mirror: bool = Fals
     :func:`select_keep`'s largest (the support counts runs, twice as many); one grid wins ties
     (docs/demo-experiments.md, "Frames larger than the network")."""
     def row(phases, fused, support):
-        pairs = floor_pairs(fused, support, best["floor_classes"], best["floor_weight"], sweep)
-        return dict(scored_row(best, support, evaluation.evaluate(pairs, classes)),
-                    phases=phases)
+        return dict(floor_row(fused, best, support, classes, sweep), phases=phases)
 
     rows = [row(1, fuse_looks(records, best, 1), best["min_support"])]
     both = fuse_looks(records, best, 2)
     rows += [row(2, both, support) for support in range(1, 2 * (4 if mirror else 2) + 1)]
     chosen = best_of(rows, criterion)
     return ((2, chosen["min_support"]) if chosen["phases"] == 2 else (1, None)), rows
+
+
+def floor_row(fused: list, settings: dict, min_support: int, classes, sweep) -> dict:
+    """The row of ``settings`` (a row's CHOSEN keys; its floor prior applied as
+    :func:`floor_pairs` applies it) at ``min_support``, scored on ``fused`` (fuse_records' or
+    fuse_looks' with its threshold, region and fusion)."""
+    pairs = floor_pairs(fused, min_support, settings["floor_classes"],
+                        settings["floor_weight"], sweep)
+    return scored_row(settings, min_support, evaluation.evaluate(pairs, classes))
 
 
 def scored_row(settings: dict, min_support: int, metrics: dict) -> dict:
