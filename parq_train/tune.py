@@ -93,7 +93,7 @@ def main(argv=None) -> int:
 
 def criterion_of(args) -> Criterion:
     """The :class:`Criterion` that ``args`` (main's) ask for."""
-    return Criterion(getattr(args, "min_f1_50", None))
+    return Criterion(args.min_f1_50)
 
 
 def record_of(args, folders, best, table, ranking) -> dict:
@@ -158,7 +158,7 @@ def run_checkpoint(args, folders) -> int:
     from parq_export.export import export
     from parq_runtime import Detector
 
-    if getattr(args, "phase_data", None):
+    if args.phase_data:
         raise ParqError("--phase-data chooses for a model folder: export the checkpoint, then "
                         "tune the folder")
 
@@ -192,13 +192,10 @@ def run_checkpoint(args, folders) -> int:
     record = record_of(args, folders, best, table, ranking)
     model = loaded.model()
     extra = dict(loaded.config.extra, postprocess_tuning=record)
+    chosen = {k: tuple(best[k]) if isinstance(best[k], list) else best[k] for k in CHOSEN}
     model.config = loaded.config.replace(
-        score_threshold=best["score_threshold"], eval_region=tuple(best["eval_region"]),
-        fusion=best["fusion"], min_support=best["min_support"], ray_ratio=best["ray_ratio"],
-        scene_nms=best["scene_nms"], floor_classes=tuple(best["floor_classes"]),
-        floor_weight=best["floor_weight"], labels=best["labels"], match_iou=best["match_iou"],
-        run_iters=args.iters, run_queries=args.queries, run_mirror=args.mirror, extra=extra,
-        query_order=tuple(order))
+        **chosen, run_iters=args.iters, run_queries=args.queries, run_mirror=args.mirror,
+        extra=extra, query_order=tuple(order))
     metadata = {"tuning_table": table}
     checkpoint.save(args.output, model, metadata)
     print(json.dumps(record, indent=1))
